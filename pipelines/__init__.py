@@ -1,0 +1,1 @@
+"""Stage implementations and data for gdwm (import ``pipelines``)."""

@@ -1,0 +1,19 @@
+"""Base config of every dataset in the ``data/`` group (conf/data/*.yaml)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class DatasetConfig:
+    """Fields every ``data/`` option has; each producer subclasses it next to its code."""
+
+    name: str = "???"
+    """Dataset name; also the folder under ``<workdir>/data/``."""
+    root: str = "${workdir}/data/${.name}"
+    """Where the published dataset lives (a local directory)."""
+    builder: str = "???"
+    """Dotted path of ``build(cfg, root, source, overwrite) -> Path`` that produces this dataset."""
+    summarizer: str = "pipelines.data.summary.summarize"
+    """Dotted path of ``summarize(root) -> dict`` used by ``gdwm data info``."""

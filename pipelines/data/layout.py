@@ -1,0 +1,465 @@
+"""The NuScenes-GSQA on-disk layout (DESIGN §8) and its atomic writer.
+
+A dataset root looks like::
+
+    dataset.json                 name, layout version, cameras, counts, fingerprint (written last)
+    scenes.parquet               one row per scene
+    frames.parquet               one row per (scene, frame)
+    cameras.parquet              intrinsics + sensor->ego extrinsics per (scene, camera)
+    ego_poses.parquet            ego->world pose per (scene, frame)
+    boxes3d.parquet              3D boxes in the frame's ego frame
+    boxes2d.parquet              2D boxes per camera (pixels of the stored image)
+    qa.parquet                   QA records in the paper's JSON schema (+ sample_id, split, gt)
+    scenes/<scene>/images/<CAM>/<frame:05d>.png          RGB (clear weather)
+    scenes/<scene>/images_<weather>/<CAM>/<frame:05d>.png weather variants of the same frames
+    scenes/<scene>/depth/<CAM>/<frame:05d>.png           uint16 PNG, metres * DEPTH_SCALE, 0 = no depth
+    scenes/<scene>/lidar/<frame:05d>.arrow               Arrow IPC: x, y, z, intensity (ego frame)
+    scenes/<scene>/gaussians/<frame:05d>.arrow           Arrow IPC, GAUSSIAN_SCHEMA (ego frame)
+
+Conventions: ego frame x forward, y left, z up (nuScenes); camera frame x right, y down,
+z forward (OpenCV); quaternions are stored (qw, qx, qy, qz) in tables and converted to the
+paper's (qx, qy, qz, qw) order only in trajectory QA text. Poses are 4x4 row-major.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+import uuid
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+LAYOUT_VERSION = 1
+CAMERAS = (
+    "CAM_FRONT",
+    "CAM_FRONT_RIGHT",
+    "CAM_BACK_RIGHT",
+    "CAM_BACK",
+    "CAM_BACK_LEFT",
+    "CAM_FRONT_LEFT",
+)
+WEATHERS = ("clear", "rain", "fog", "night")
+# Task families of the paper's QA: region description & perception, 2D/3D grounding, planning, trajectory.
+TASKS = ("rdp", "vg2d", "vg3d", "plan", "traj")
+SPLITS = ("train", "val")
+DEPTH_SCALE = 256.0  # KITTI convention: uint16 value / 256 = metres, 0 = invalid (max 255.99 m)
+GAUSS_TOKEN = "<gauss>"
+
+
+class DataError(ValueError):
+    """Bad or missing data; the message names the file, scene, frame, camera or field."""
+
+
+def _fsl(n: int) -> pa.DataType:
+    return pa.list_(pa.float32(), n)
+
+
+POSE_TYPE = _fsl(16)
+
+SCENES_SCHEMA = pa.schema(
+    [
+        ("scene_id", pa.string()),
+        ("name", pa.string()),
+        ("num_frames", pa.int32()),
+        ("frame_rate_hz", pa.float32()),
+        ("description", pa.string()),
+        ("weathers", pa.list_(pa.string())),
+        ("source", pa.string()),
+    ]
+)
+FRAMES_SCHEMA = pa.schema(
+    [
+        ("scene_id", pa.string()),
+        ("frame_idx", pa.int32()),
+        ("timestamp_us", pa.int64()),
+        ("token", pa.string()),
+    ]
+)
+CAMERAS_SCHEMA = pa.schema(
+    [
+        ("scene_id", pa.string()),
+        ("camera", pa.string()),
+        ("width", pa.int32()),
+        ("height", pa.int32()),
+        ("fx", pa.float32()),
+        ("fy", pa.float32()),
+        ("cx", pa.float32()),
+        ("cy", pa.float32()),
+        ("sensor2ego", POSE_TYPE),
+    ]
+)
+EGO_POSES_SCHEMA = pa.schema(
+    [
+        ("scene_id", pa.string()),
+        ("frame_idx", pa.int32()),
+        ("ego2world", POSE_TYPE),
+    ]
+)
+BOXES3D_SCHEMA = pa.schema(
+    [
+        ("scene_id", pa.string()),
+        ("frame_idx", pa.int32()),
+        ("instance_id", pa.string()),
+        ("category", pa.string()),
+        ("attribute", pa.string()),
+        ("center", _fsl(3)),  # ego frame, metres
+        ("size", _fsl(3)),  # length (x), width (y), height (z), metres
+        ("yaw", pa.float32()),  # about ego z, radians
+        ("velocity", _fsl(2)),  # ego frame, m/s
+    ]
+)
+BOXES2D_SCHEMA = pa.schema(
+    [
+        ("scene_id", pa.string()),
+        ("frame_idx", pa.int32()),
+        ("camera", pa.string()),
+        ("instance_id", pa.string()),
+        ("box", _fsl(4)),  # x1, y1, x2, y2 in pixels of the stored image
+        ("visible_fraction", pa.float32()),
+    ]
+)
+_TURN = pa.struct([("from", pa.string()), ("value", pa.string())])
+QA_SCHEMA = pa.schema(
+    [
+        ("sample_id", pa.string()),
+        ("scene_token", pa.string()),  # == scene_id
+        ("frame_idx", pa.int32()),
+        ("task", pa.string()),
+        ("category", pa.string()),
+        ("conversations", pa.list_(_TURN)),
+        ("image", pa.list_(pa.string())),  # paths relative to the dataset root
+        ("views", pa.list_(pa.string())),
+        ("gauss", pa.list_(pa.string())),  # paths relative to the dataset root
+        ("split", pa.string()),
+        ("gt", pa.string()),  # JSON: the ground truth the answer was computed from
+    ]
+)
+LIDAR_SCHEMA = pa.schema(
+    [
+        ("x", pa.float32()),
+        ("y", pa.float32()),
+        ("z", pa.float32()),
+        ("intensity", pa.float32()),
+    ]
+)
+
+
+def gaussian_schema(feature_dim: int) -> pa.Schema:
+    """Gaussians of one frame in its ego frame; activated values, not logits."""
+    return pa.schema(
+        [
+            ("xyz", _fsl(3)),  # centre, metres, ego frame
+            ("scale", _fsl(3)),  # standard deviations along the local axes, metres (> 0)
+            ("rotation", _fsl(4)),  # unit quaternion (w, x, y, z), local -> ego
+            ("opacity", pa.float32()),  # probability in [0, 1]
+            ("color", _fsl(3)),  # linear RGB in [0, 1]
+            ("feature", _fsl(feature_dim)),  # compact feature code z_i
+        ],
+        metadata={b"gdwm.feature_dim": str(feature_dim).encode(), b"gdwm.frame": b"ego"},
+    )
+
+
+TABLES: dict[str, pa.Schema] = {
+    "scenes": SCENES_SCHEMA,
+    "frames": FRAMES_SCHEMA,
+    "cameras": CAMERAS_SCHEMA,
+    "ego_poses": EGO_POSES_SCHEMA,
+    "boxes3d": BOXES3D_SCHEMA,
+    "boxes2d": BOXES2D_SCHEMA,
+    "qa": QA_SCHEMA,
+}
+
+
+def image_relpath(scene_id: str, camera: str, frame_idx: int, weather: str = "clear") -> str:
+    folder = "images" if weather == "clear" else f"images_{weather}"
+    return f"scenes/{scene_id}/{folder}/{camera}/{frame_idx:05d}.png"
+
+
+def depth_relpath(scene_id: str, camera: str, frame_idx: int) -> str:
+    return f"scenes/{scene_id}/depth/{camera}/{frame_idx:05d}.png"
+
+
+def lidar_relpath(scene_id: str, frame_idx: int) -> str:
+    return f"scenes/{scene_id}/lidar/{frame_idx:05d}.arrow"
+
+
+def gaussians_relpath(scene_id: str, frame_idx: int) -> str:
+    return f"scenes/{scene_id}/gaussians/{frame_idx:05d}.arrow"
+
+
+# ----------------------------------------------------------------------------- arrays <-> arrow
+
+
+def fsl_array(values: np.ndarray, width: int) -> pa.FixedSizeListArray:
+    """An [N, width] float array as a fixed-size-list column (zero-copy where contiguous)."""
+    flat = np.ascontiguousarray(values, dtype=np.float32).reshape(-1)
+    return pa.FixedSizeListArray.from_arrays(pa.array(flat, type=pa.float32()), width)
+
+
+def fsl_to_numpy(column: pa.ChunkedArray | pa.Array, width: int) -> np.ndarray:
+    """A fixed-size-list column as an [N, width] float32 array (zero-copy for one chunk)."""
+    if isinstance(column, pa.ChunkedArray):
+        column = column.combine_chunks() if column.num_chunks != 1 else column.chunk(0)
+    values = column.flatten().to_numpy(zero_copy_only=False)
+    return values.reshape(-1, width)
+
+
+def check_gaussians(arrays: Mapping[str, np.ndarray], where: str) -> None:
+    """Reject wrong-shaped or non-finite Gaussians, naming ``where`` (file/scene/frame) and the field."""
+    required = {"xyz": 3, "scale": 3, "rotation": 4, "opacity": 1, "color": 3, "feature": None}
+    missing = [k for k in required if k not in arrays]
+    if missing:
+        raise DataError(f"{where}: Gaussians lack field(s) {missing}")
+    n = arrays["xyz"].shape[0]
+    for key, width in required.items():
+        a = np.asarray(arrays[key])
+        shape_ok = a.ndim >= 1 and a.shape[0] == n
+        if width == 1:
+            shape_ok = shape_ok and (a.ndim == 1 or (a.ndim == 2 and a.shape[1] == 1))
+        elif width is not None:
+            shape_ok = shape_ok and a.ndim == 2 and a.shape[1] == width
+        else:
+            shape_ok = shape_ok and a.ndim == 2 and a.shape[1] >= 1
+        if not shape_ok:
+            want = f"[{n}, {width}]" if width not in (None, 1) else (f"[{n}]" if width == 1 else f"[{n}, D]")
+            raise DataError(f"{where}: Gaussian field '{key}' has shape {list(a.shape)}, expected {want}")
+        bad = ~np.isfinite(a)
+        if bad.any():
+            row = int(np.argwhere(bad)[0][0])
+            raise DataError(
+                f"{where}: Gaussian field '{key}' has NaN/Inf ({int(bad.sum())} values, first at row {row})"
+            )
+    if (arrays["scale"] <= 0).any():
+        raise DataError(f"{where}: Gaussian field 'scale' has non-positive values")
+    norms = np.linalg.norm(arrays["rotation"], axis=1)
+    if (norms < 1e-8).any():
+        raise DataError(f"{where}: Gaussian field 'rotation' has a zero quaternion (not normalisable)")
+    op = np.asarray(arrays["opacity"]).reshape(-1)
+    if ((op < 0) | (op > 1)).any():
+        raise DataError(f"{where}: Gaussian field 'opacity' is outside [0, 1] (expected probabilities, not logits)")
+
+
+def gaussians_table(arrays: Mapping[str, np.ndarray], where: str = "gaussians") -> pa.Table:
+    check_gaussians(arrays, where)
+    rot = np.asarray(arrays["rotation"], dtype=np.float32)
+    rot = rot / np.linalg.norm(rot, axis=1, keepdims=True)
+    feat = np.asarray(arrays["feature"], dtype=np.float32)
+    schema = gaussian_schema(feat.shape[1])
+    cols = [
+        fsl_array(arrays["xyz"], 3),
+        fsl_array(arrays["scale"], 3),
+        fsl_array(rot, 4),
+        pa.array(np.asarray(arrays["opacity"], dtype=np.float32).reshape(-1)),
+        fsl_array(arrays["color"], 3),
+        fsl_array(feat, feat.shape[1]),
+    ]
+    return pa.Table.from_arrays(cols, schema=schema)
+
+
+def write_arrow(table: pa.Table, path: Path) -> None:
+    """Uncompressed Arrow IPC file, so readers can memory-map it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with pa.OSFile(str(path), "wb") as sink, pa.ipc.new_file(sink, table.schema) as writer:
+        writer.write_table(table)
+
+
+def encode_depth(depth_m: np.ndarray) -> np.ndarray:
+    d = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    return np.clip(np.round(d * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+
+
+def decode_depth(raw: np.ndarray) -> np.ndarray:
+    return raw.astype(np.float32) / DEPTH_SCALE
+
+
+# ----------------------------------------------------------------------------- fingerprint
+
+
+def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def fingerprint_tree(root: Path) -> tuple[str, int, int]:
+    """(sha256 over sorted (relpath, sha256) of every file but dataset.json, file count, bytes)."""
+    h = hashlib.sha256()
+    count = size = 0
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        rel = path.relative_to(root).as_posix()
+        if rel == "dataset.json":
+            continue
+        h.update(rel.encode())
+        h.update(b"\0")
+        h.update(file_sha256(path).encode())
+        h.update(b"\n")
+        count += 1
+        size += path.stat().st_size
+    return h.hexdigest(), count, size
+
+
+# ----------------------------------------------------------------------------- writer
+
+
+@dataclass
+class _Rows:
+    schema: pa.Schema
+    rows: list
+
+
+class DatasetWriter:
+    """Builds a dataset in a temp dir beside ``root`` and publishes it atomically.
+
+    Use as a context manager; on an exception the temp dir is removed and an existing
+    dataset at ``root`` is untouched. ``overwrite=False`` refuses to replace one.
+    """
+
+    def __init__(self, root: str | os.PathLike, name: str, source: str, overwrite: bool = False):
+        self.root = Path(root).resolve()
+        self.name = name
+        self.source = source
+        self.overwrite = overwrite
+        self.tmp: Path | None = None
+        self._tables = {k: _Rows(s, []) for k, s in TABLES.items()}
+        self.extra_meta: dict = {}
+
+    # -- lifecycle
+    def __enter__(self) -> DatasetWriter:
+        if self.root.exists() and not self.overwrite:
+            raise DataError(f"{self.root}: a dataset already exists (pass overwrite to replace it)")
+        self.root.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.tmp-", dir=self.root.parent))
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        try:
+            if exc_type is None:
+                self._publish()
+        finally:
+            if self.tmp is not None and self.tmp.exists():
+                shutil.rmtree(self.tmp, ignore_errors=True)
+
+    def path(self, rel: str) -> Path:
+        assert self.tmp is not None, "DatasetWriter used outside its context"
+        p = self.tmp / rel
+        p.parent.mkdir(parents=True, exist_ok=True)
+        return p
+
+    # -- rows
+    def add(self, table: str, **row) -> None:
+        self._tables[table].rows.append(row)
+
+    def extend(self, table: str, rows: Iterable[Mapping]) -> None:
+        self._tables[table].rows.extend(rows)
+
+    # -- files
+    def write_image(self, rel: str, rgb_HW3: np.ndarray) -> None:
+        img = np.asarray(rgb_HW3)
+        if img.dtype != np.uint8:
+            img = np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
+        if not cv2.imwrite(str(self.path(rel)), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
+            raise DataError(f"{rel}: OpenCV could not write the image")
+
+    def copy_file(self, rel: str, src: Path) -> None:
+        shutil.copyfile(src, self.path(rel))
+
+    def write_depth(self, rel: str, depth_HW: np.ndarray) -> None:
+        if not cv2.imwrite(str(self.path(rel)), encode_depth(depth_HW)):
+            raise DataError(f"{rel}: OpenCV could not write the depth image")
+
+    def write_lidar(self, rel: str, points_N4: np.ndarray) -> None:
+        pts = np.asarray(points_N4, dtype=np.float32)
+        if pts.ndim != 2 or pts.shape[1] != 4:
+            raise DataError(f"{rel}: LiDAR points have shape {list(pts.shape)}, expected [N, 4]")
+        cols = [pa.array(pts[:, i]) for i in range(4)]
+        write_arrow(pa.Table.from_arrays(cols, schema=LIDAR_SCHEMA), self.path(rel))
+
+    def write_gaussians(self, rel: str, arrays: Mapping[str, np.ndarray]) -> None:
+        write_arrow(gaussians_table(arrays, where=rel), self.path(rel))
+
+    # -- publish
+    def _publish(self) -> None:
+        assert self.tmp is not None
+        for name, t in self._tables.items():
+            table = pa.Table.from_pylist(t.rows, schema=t.schema)
+            pq.write_table(table, self.tmp / f"{name}.parquet")
+        scenes = pq.read_table(self.tmp / "scenes.parquet").num_rows
+        frames = pq.read_table(self.tmp / "frames.parquet").num_rows
+        fingerprint, nfiles, nbytes = fingerprint_tree(self.tmp)
+        meta = {
+            "name": self.name,
+            "layout_version": LAYOUT_VERSION,
+            "source": self.source,
+            "cameras": sorted({r["camera"] for r in self._tables["cameras"].rows}, key=_camera_order),
+            "num_scenes": scenes,
+            "num_frames": frames,
+            "num_files": nfiles,
+            "bytes": nbytes,
+            "fingerprint": fingerprint,
+            **self.extra_meta,
+        }
+        # dataset.json is written last: a reader trusts only a root that has it.
+        (self.tmp / "dataset.json").write_text(json.dumps(meta, indent=2, sort_keys=True))
+        old = None
+        if self.root.exists():
+            old = self.root.with_name(f".{self.root.name}.old-{uuid.uuid4().hex[:8]}")
+            os.rename(self.root, old)
+        os.rename(self.tmp, self.root)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+
+def _camera_order(cam: str) -> tuple[int, str]:
+    return (CAMERAS.index(cam) if cam in CAMERAS else len(CAMERAS), cam)
+
+
+def pose_matrix(rotation_wxyz: Iterable[float], translation: Iterable[float]) -> np.ndarray:
+    """4x4 from a (w, x, y, z) quaternion and a translation."""
+    w, x, y, z = np.asarray(list(rotation_wxyz), dtype=np.float64) / np.linalg.norm(list(rotation_wxyz))
+    r = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+    m = np.eye(4)
+    m[:3, :3] = r
+    m[:3, 3] = list(translation)
+    return m
+
+
+def matrix_to_quat_wxyz(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) with w >= 0 from a 3x3 rotation matrix (Shepperd's method)."""
+    r = np.asarray(r, dtype=np.float64)[:3, :3]
+    tr = np.trace(r)
+    if tr > 0:
+        s = np.sqrt(tr + 1.0) * 2
+        q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2]) * 2
+        q = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
+    elif r[1, 1] > r[2, 2]:
+        s = np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2]) * 2
+        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
+    else:
+        s = np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
+        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def flat_pose(m: np.ndarray) -> list[float]:
+    return [float(v) for v in np.asarray(m, dtype=np.float64).reshape(16)]

@@ -1,0 +1,5 @@
+import sys
+
+from gdwm.cli import main
+
+sys.exit(main())

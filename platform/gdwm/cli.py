@@ -1,0 +1,189 @@
+"""``gdwm <command> [subcommand] [hydra overrides...]``.
+
+Exit codes: 0 success, 1 a command failed (the message names what), 2 usage or config error
+(nothing was launched).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from hydra.utils import get_method
+from omegaconf import DictConfig, OmegaConf
+from rich.console import Console
+from rich.table import Table
+
+from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config
+
+console = Console(highlight=False)
+err_console = Console(stderr=True, highlight=False)
+
+
+class CommandError(Exception):
+    """A command that failed at run time; printed without a traceback, exit 1."""
+
+
+@dataclass
+class Command:
+    run: Callable[[DictConfig, list[str]], int | None]
+    help: str
+    defaults: list[str] = field(default_factory=list)
+    """Overrides applied before the user's, e.g. the data group an import command implies."""
+
+
+def _fmt_bytes(n: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{n} B"
+        n /= 1024
+    return f"{n} B"
+
+
+def print_dataset_summary(s: dict) -> None:
+    console.print(
+        f"[bold]{s['name']}[/bold] at {s['root']}  (source {s['source']}, fingerprint {s['fingerprint'][:12]})"
+    )
+    t = Table(show_header=True, header_style="bold")
+    for col in ("scenes", "frames", "cameras", "weathers", "3D boxes", "2D boxes", "QA", "files", "on disk"):
+        t.add_column(col, justify="right")
+    t.add_row(
+        str(s["scenes"]),
+        str(s["frames"]),
+        str(len(s["cameras"])),
+        ",".join(s["weathers"]) or "-",
+        str(s["boxes3d"]),
+        str(s["boxes2d"]),
+        str(s["qa_total"]),
+        str(s["files"]),
+        _fmt_bytes(s["bytes"]),
+    )
+    console.print(t)
+    q = Table(title="QA per task family", show_header=True, header_style="bold")
+    for task in s["qa_per_task"]:
+        q.add_column(task, justify="right")
+    q.add_row(*(str(v) for v in s["qa_per_task"].values()))
+    console.print(q)
+    splits = ", ".join(f"{k} {v}" for k, v in s["qa_per_split"].items())
+    console.print(f"QA splits: {splits or '-'}")
+
+
+def _build_dataset(cfg: DictConfig, _args: list[str]) -> int:
+    root = Path(cfg.data.root)
+    t0 = time.perf_counter()
+    build = get_method(cfg.data.builder)
+    build(cfg.data, root=root, source=cfg.source, overwrite=cfg.overwrite)
+    console.print(f"built {cfg.data.name} in {time.perf_counter() - t0:.1f} s")
+    print_dataset_summary(get_method(cfg.data.summarizer)(root))
+    return 0
+
+
+def _data_info(cfg: DictConfig, _args: list[str]) -> int:
+    print_dataset_summary(get_method(cfg.data.summarizer)(Path(cfg.data.root)))
+    return 0
+
+
+def _config_show(cfg: DictConfig, _args: list[str]) -> int:
+    console.print(OmegaConf.to_yaml(cfg), end="", markup=False)
+    return 0
+
+
+COMMANDS: dict[str, dict[str, Command]] = {
+    "data": {
+        "synth": Command(_build_dataset, "generate the synthetic_mini dataset (data.num_scenes, data.seed, ...)"),
+        "import-gaussiandwm": Command(
+            _build_dataset, "import the public GaussianDWM release from source=DIR", ["data=gaussiandwm_release"]
+        ),
+        "convert-nuscenes": Command(
+            _build_dataset, "convert nuScenes v1.0 tables on disk at source=DIR", ["data=nuscenes"]
+        ),
+        "info": Command(_data_info, "summarise the dataset selected by data=... (scenes, frames, QA, bytes)"),
+    },
+    "config": {
+        "show": Command(_config_show, "print the resolved config"),
+    },
+}
+
+
+def _groups_help() -> str:
+    lines = ["config groups (pick with GROUP=OPTION):"]
+    for g in MAIN_GROUPS:
+        try:
+            opts = ", ".join(group_options(g))
+        except ConfigError:
+            opts = "?"
+        lines.append(f"  {g:<10} {opts}")
+    lines.append("common overrides: workdir=DIR (default ./gdwm-work), source=DIR, overwrite=true, data.KEY=VALUE")
+    return "\n".join(lines)
+
+
+def usage(command: str | None = None) -> str:
+    if command is None:
+        lines = ["usage: gdwm <command> <subcommand> [overrides...]", "", "commands:"]
+        for name, subs in COMMANDS.items():
+            for sub, c in subs.items():
+                lines.append(f"  {name + ' ' + sub:<26} {c.help}")
+    else:
+        lines = [f"usage: gdwm {command} <subcommand> [overrides...]", "", "subcommands:"]
+        for sub, c in COMMANDS[command].items():
+            lines.append(f"  {sub:<20} {c.help}")
+    return "\n".join([*lines, "", _groups_help()])
+
+
+def _user_sets_group(overrides: list[str], group: str) -> bool:
+    return any(o.split("=", 1)[0].lstrip("+~") == group for o in overrides if "=" in o)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(usage())
+        return 0 if argv else 2
+    command, rest = argv[0], argv[1:]
+    if command not in COMMANDS:
+        err_console.print(f"gdwm: unknown command '{command}'; commands: {', '.join(COMMANDS)}", markup=False)
+        return 2
+    if not rest or rest[0] in ("-h", "--help"):
+        print(usage(command))
+        return 0 if rest else 2
+    sub, overrides = rest[0], rest[1:]
+    if sub not in COMMANDS[command]:
+        err_console.print(
+            f"gdwm {command}: unknown subcommand '{sub}'; subcommands: {', '.join(COMMANDS[command])}", markup=False
+        )
+        return 2
+    spec = COMMANDS[command][sub]
+    if any(o in ("-h", "--help") for o in overrides):
+        print(f"usage: gdwm {command} {sub} [overrides...]\n\n{spec.help}\n\n{_groups_help()}")
+        return 0
+    flags = [o for o in overrides if o.startswith("--")]
+    if flags:
+        err_console.print(
+            f"gdwm {command} {sub}: unknown flag(s) {flags}; settings are overrides KEY=VALUE", markup=False
+        )
+        return 2
+    defaults = [d for d in spec.defaults if not _user_sets_group(overrides, d.split("=", 1)[0])]
+    try:
+        cfg = load_config([*defaults, *overrides])
+    except ConfigError as e:
+        err_console.print(f"gdwm: config error: {e}", markup=False)
+        return 2
+    try:
+        return int(spec.run(cfg, overrides) or 0)
+    except (CommandError, ValueError, OSError) as e:
+        # Data and I/O errors carry a message naming the file/scene/key; GDWM_DEBUG=1 shows the traceback.
+        if os.environ.get("GDWM_DEBUG"):
+            raise
+        err_console.print(f"gdwm {command} {sub}: {type(e).__name__}: {e}", markup=False)
+        return 1
+    except KeyboardInterrupt:
+        err_console.print(f"gdwm {command} {sub}: interrupted", markup=False)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,198 @@
+"""Composing ``conf/`` with Hydra's compose API, validated against structured-config schemas.
+
+Schemas of the platform's own groups live here; schemas of stages, datasets and model
+variants are registered by plugins (entry-point group ``gdwm.plugins``: a callable taking the
+ConfigStore), so gdwm never imports ``pipelines`` or ``model_zoo`` by name. Each YAML option
+pulls its schema from the ``schema/<group>/<name>`` defaults entry, so an unknown key, a wrong
+type or a missing mandatory value is caught at compose time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+from dataclasses import dataclass, field
+from functools import cache
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import Any
+
+from hydra import compose, initialize_config_dir
+from hydra.core.config_store import ConfigStore
+from hydra.errors import HydraException, MissingConfigException
+from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
+
+PLUGIN_GROUP = "gdwm.plugins"
+MAIN_GROUPS = ("data", "cluster", "tracking")
+
+
+class ConfigError(Exception):
+    """A config that does not compose or validate; the CLI prints it and exits 2."""
+
+
+@dataclass
+class StageResources:
+    """Resources of one stage resource class (``cpu``, ``gpu``, ``train``, ``eval``)."""
+
+    num_cpus: float = 1.0
+    """CPUs per task, actor or training worker."""
+    num_gpus: float = 0.0
+    """GPUs per task, actor or training worker (fractions allowed for evaluation)."""
+    num_workers: int = 1
+    """Parallel actors (per-scene stages) or Ray Train workers (training stages); 0 = in-process."""
+
+
+@dataclass
+class ClusterConfig:
+    """Where Ray runs and what each stage resource class asks for."""
+
+    name: str = "local"
+    """Cluster profile name."""
+    address: str | None = None
+    """Ray address (``auto`` or ``ray://...``); null starts a local Ray with ``num_cpus``."""
+    num_cpus: int | None = 2
+    """CPUs of the local Ray (ignored when ``address`` is set)."""
+    num_gpus: int = 0
+    """GPUs of the local Ray (ignored when ``address`` is set)."""
+    resources: dict[str, StageResources] = field(
+        default_factory=lambda: {k: StageResources() for k in ("cpu", "gpu", "train", "eval")}
+    )
+    """Per resource class: what a stage of that class requests."""
+
+
+@dataclass
+class TrackingConfig:
+    """MLflow tracking store."""
+
+    name: str = "sqlite"
+    """Tracking profile name."""
+    uri: str = "sqlite:///${abspath:${workdir}}/mlflow.db"
+    """MLflow tracking URI (sqlite file under the workdir by default)."""
+    artifact_location: str | None = "${abspath:${workdir}}/mlartifacts"
+    """Artifact root for new experiments; null lets the server decide."""
+    experiment: str = "gdwm"
+    """MLflow experiment name."""
+    single_writer: bool = True
+    """Route every write through one process (required for sqlite)."""
+
+
+@dataclass
+class GdwmConfig:
+    """Top level of every composed config."""
+
+    workdir: str = "./gdwm-work"
+    """Roots everything a run writes: data, cache, MLflow store, reports."""
+    source: str | None = None
+    """Input directory of import/convert commands."""
+    overwrite: bool = False
+    """Replace an existing output (e.g. a dataset) instead of refusing."""
+    seed: int = 0
+    """Global seed."""
+    data: Any = MISSING
+    """Dataset (group ``data/``)."""
+    cluster: Any = MISSING
+    """Ray cluster profile (group ``cluster/``)."""
+    tracking: Any = MISSING
+    """MLflow tracking profile (group ``tracking/``)."""
+
+
+def _register_platform(cs: ConfigStore) -> None:
+    cs.store(name="gdwm_schema", node=GdwmConfig)
+    cs.store(group="schema/cluster", name="cluster", node=ClusterConfig)
+    cs.store(group="schema/tracking", name="tracking", node=TrackingConfig)
+
+
+@cache
+def _register_all() -> tuple[str, ...]:
+    if not OmegaConf.has_resolver("abspath"):
+        OmegaConf.register_new_resolver("abspath", lambda p: str(Path(p).expanduser().resolve()))
+    cs = ConfigStore.instance()
+    _register_platform(cs)
+    loaded = []
+    for ep in sorted(entry_points(group=PLUGIN_GROUP), key=lambda e: e.name):
+        try:
+            ep.load()(cs)
+        except Exception as e:  # a broken plugin must name itself, not surface as a bare ImportError
+            raise ConfigError(f"plugin '{ep.name}' ({ep.value}) failed to register its configs: {e!r}") from e
+        loaded.append(ep.name)
+    return tuple(loaded)
+
+
+def conf_dir() -> Path:
+    """``$GDWM_CONF_DIR``, else the ``conf/`` of the checkout this package runs from."""
+    env = os.environ.get("GDWM_CONF_DIR")
+    candidates = [Path(env)] if env else []
+    candidates += [Path(__file__).resolve().parents[2] / "conf", Path.cwd() / "conf"]
+    for c in candidates:
+        if (c / "config.yaml").is_file():
+            return c.resolve()
+    raise ConfigError(
+        f"no gdwm config tree found (looked for config.yaml in {[str(c) for c in candidates]}); set GDWM_CONF_DIR"
+    )
+
+
+def group_options(group: str) -> list[str]:
+    root = conf_dir() / group
+    return sorted(p.stem for p in root.glob("*.yaml")) if root.is_dir() else []
+
+
+def load_config(overrides: list[str] | tuple[str, ...] = (), config_name: str = "config") -> DictConfig:
+    """Compose and validate; every interpolation is resolved so missing values fail here, not mid-run."""
+    _register_all()
+    try:
+        with initialize_config_dir(config_dir=str(conf_dir()), version_base="1.3"):
+            cfg = compose(config_name=config_name, overrides=list(overrides))
+        OmegaConf.resolve(cfg)
+        _check_missing(cfg)
+    except (HydraException, OmegaConfBaseException) as e:
+        raise ConfigError(explain(e)) from e
+    return cfg
+
+
+def _check_missing(cfg: DictConfig, prefix: str = "") -> None:
+    for key in cfg:
+        full = f"{prefix}{key}"
+        if OmegaConf.is_missing(cfg, key):
+            raise MissingMandatoryValue(f"Missing mandatory value: {full}\n    full_key: {full}")
+        value = cfg[key]
+        if isinstance(value, DictConfig):
+            _check_missing(value, f"{full}.")
+
+
+def _allowed_keys(inner: OmegaConfBaseException) -> list[str]:
+    """Fields of the schema the bad key was checked against."""
+    obj = getattr(inner, "object_type", None)
+    return [f.name for f in dataclasses.fields(obj)] if dataclasses.is_dataclass(obj) else []
+
+
+def explain(e: Exception) -> str:
+    """One paragraph naming the full key (or group) and what is allowed."""
+    if isinstance(e, MissingConfigException):
+        m = re.search(r"Could not find '([^']+)'", str(e))
+        missing = m.group(1) if m else str(e).splitlines()[0]
+        group, _, option = missing.rpartition("/")
+        allowed = group_options(group) if group else []
+        if group and allowed:
+            return f"config group '{group}' has no option '{option}'; allowed values: {', '.join(allowed)}."
+        return f"config '{missing}' not found under {conf_dir()}."
+    chain = [e]
+    while chain[-1].__cause__ is not None and len(chain) < 5:
+        chain.append(chain[-1].__cause__)
+    inner = next((c for c in reversed(chain) if isinstance(c, OmegaConfBaseException)), e)
+    text = str(inner)
+    full_key = getattr(inner, "full_key", None)
+    if not full_key:
+        m = re.search(r"full_key: (\S+)", text)
+        full_key = m.group(1) if m else None
+    head = text.splitlines()[0].strip()
+    if isinstance(inner, MissingMandatoryValue):
+        return f"missing mandatory value '{full_key}': set it with {full_key}=VALUE."
+    if full_key and "not in" in head:
+        allowed = _allowed_keys(inner)
+        hint = f"; allowed keys here: {', '.join(allowed)}" if allowed else ""
+        return f"unknown config key '{full_key}'{hint}."
+    if full_key:
+        return f"invalid value for '{full_key}': {head}."
+    return " ".join(line.strip() for line in str(e).splitlines() if line.strip() and "search path" not in line)

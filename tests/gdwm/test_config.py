@@ -1,0 +1,86 @@
+"""Every YAML under conf/ composes; bad overrides are exit-2 errors naming the key."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from gdwm.config import ConfigError, conf_dir, load_config
+
+CONF = conf_dir()
+GROUP_YAMLS = sorted(p.relative_to(CONF) for p in CONF.rglob("*.yaml") if p.parent != CONF)
+
+
+def _gdwm(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "gdwm", *args], capture_output=True, text=True, cwd=cwd)
+
+
+def test_conf_tree_has_the_design_groups():
+    groups = {p.parts[0] for p in GROUP_YAMLS}
+    assert {"data", "cluster", "tracking"} <= groups
+    assert {p.stem for p in (CONF / "data").glob("*.yaml")} == {"synthetic_mini", "nuscenes", "gaussiandwm_release"}
+
+
+def test_root_config_composes_with_defaults(tmp_path):
+    cfg = load_config([f"workdir={tmp_path}"])
+    assert cfg.data.name == "synthetic_mini"
+    assert cfg.data.root == f"{tmp_path}/data/synthetic_mini"
+    assert cfg.tracking.uri == f"sqlite:///{tmp_path.resolve()}/mlflow.db"
+    assert cfg.cluster.num_cpus == 2
+
+
+@pytest.mark.parametrize("rel", GROUP_YAMLS, ids=str)
+def test_every_yaml_composes(rel, tmp_path, monkeypatch):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:5000")
+    group = "/".join(rel.parts[:-1])
+    cfg = load_config([f"workdir={tmp_path}", f"{group}={rel.stem}"])
+    node = cfg
+    for part in rel.parts[:-1]:
+        node = node[part]
+    # The option's own YAML values must be what ended up in the config.
+    own = {k: v for k, v in yaml.safe_load((CONF / rel).read_text()).items() if k != "defaults"}
+    for key, value in own.items():
+        if not (isinstance(value, str) and "${" in value):
+            assert node[key] == value or (hasattr(node[key], "keys") and set(node[key]) == set(value)), key
+
+
+def test_server_tracking_takes_uri_from_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "https://mlflow.example.internal")
+    cfg = load_config([f"workdir={tmp_path}", "tracking=server"])
+    assert cfg.tracking.uri == "https://mlflow.example.internal"
+    monkeypatch.delenv("MLFLOW_TRACKING_URI")
+    with pytest.raises(ConfigError, match=r"tracking\.uri.*MLFLOW_TRACKING_URI"):
+        load_config([f"workdir={tmp_path}", "tracking=server"])
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("data.num_scnes=3", "unknown config key 'data.num_scnes'; allowed keys here: name, root, builder"),
+        ("bogus=1", "unknown config key 'bogus'; allowed keys here: workdir, source, overwrite, seed, data"),
+        ("data.num_scenes=many", "invalid value for 'data.num_scenes': Value 'many' of type 'str' could not be"),
+        (
+            "data=synthetic_maxi",
+            "config group 'data' has no option 'synthetic_maxi'; allowed values: "
+            "gaussiandwm_release, nuscenes, synthetic_mini.",
+        ),
+        ("cluster=a100x61", "config group 'cluster' has no option 'a100x61'; allowed values: a100x16, local."),
+        ("data.name=???", "missing mandatory value 'data.name': set it with data.name=VALUE."),
+    ],
+)
+def test_bad_overrides_exit_2_naming_the_key(override, message, tmp_path):
+    r = _gdwm("config", "show", f"workdir={tmp_path}", override)
+    assert r.returncode == 2, r.stderr
+    assert message in r.stderr.replace("\n", " ")
+    assert r.stdout == ""
+    assert not (tmp_path / "data").exists()
+
+
+def test_config_show_prints_resolved_yaml(tmp_path):
+    r = _gdwm("config", "show", f"workdir={tmp_path}", "data.num_scenes=3")
+    assert r.returncode == 0, r.stderr
+    assert "num_scenes: 3" in r.stdout
+    assert f"root: {tmp_path}/data/synthetic_mini" in r.stdout
+    assert "${" not in r.stdout
