@@ -1,0 +1,247 @@
+"""Import of the GaussianDWM public release: round trip through GSQADataset and exact errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from pipelines.data.gaussiandwm import ReleaseConfig, build, ids_from_path
+from pipelines.data.gaussiandwm_pth import SH_C0
+from pipelines.data.layout import DataError, pose_matrix
+from pipelines.data.reader import GSQADataset
+from tests.pipelines.data.fixtures_release import (
+    BACK0,
+    FRONT0,
+    FRONT1,
+    S2F0,
+    S2F3,
+    NotATensor,
+    gaussian_fields,
+    record,
+    write_jsonl,
+    write_pth,
+    write_release,
+)
+
+
+def expected(fields: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+    """The activation the importer must apply, computed independently in float64."""
+    rot = fields["_rotation"].double().numpy()
+    dc = fields.get("_features_dc")
+    return {
+        "xyz": fields["_xyz"].numpy(),
+        "scale": np.exp(fields["_scaling"].double().numpy()),
+        "rotation": rot / np.linalg.norm(rot, axis=1, keepdims=True),
+        "opacity": 1.0 / (1.0 + np.exp(-fields["_opacity"].double().numpy()[:, 0])),
+        "color": np.full((len(rot), 3), 0.5)
+        if dc is None
+        else np.clip(0.5 + SH_C0 * dc.double().numpy()[:, 0, :], 0, 1),
+        "feature": fields["_language_feature"].numpy(),
+    }
+
+
+def stacked(*parts: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def assert_gaussians(got: dict[str, np.ndarray], want: dict[str, np.ndarray]) -> None:
+    np.testing.assert_array_equal(got["xyz"], want["xyz"])
+    np.testing.assert_array_equal(got["feature"], want["feature"])
+    for key in ("scale", "rotation", "opacity", "color"):
+        np.testing.assert_allclose(got[key], want[key], rtol=1e-6, atol=1e-7, err_msg=key)
+
+
+def assert_nothing_published(root: Path) -> None:
+    assert not root.exists()
+    assert [p.name for p in root.parent.iterdir() if p.name.startswith(f".{root.name}")] == []
+
+
+@pytest.fixture
+def release(tmp_path: Path):
+    return write_release(tmp_path / "release")
+
+
+@pytest.fixture
+def imported(release, tmp_path: Path) -> GSQADataset:
+    return GSQADataset(build(ReleaseConfig(), tmp_path / "out", str(release.root)))
+
+
+def test_scenes_and_frames_follow_records_then_paths(imported):
+    assert imported.scene_ids == ["scene_0000", "scene_0002"]
+    scenes = imported.table("scenes").to_pylist()
+    assert [(s["name"], s["num_frames"], s["frame_rate_hz"], s["weathers"]) for s in scenes] == [
+        ("0", 2, None, []),
+        ("2", 2, None, []),
+    ]
+    frames = imported.table("frames").to_pylist()
+    # scene 2 has release frames 0 and 3 (3 only from its path): renumbered 0, 1, original kept in token.
+    assert [(f["scene_id"], f["frame_idx"], f["token"], f["timestamp_us"]) for f in frames] == [
+        ("scene_0000", 0, "0", None),
+        ("scene_0000", 1, "1", None),
+        ("scene_0002", 0, "0", None),
+        ("scene_0002", 1, "3", None),
+    ]
+    for name in ("cameras", "ego_poses", "boxes3d", "boxes2d"):
+        assert imported.table(name).num_rows == 0
+
+
+def test_gaussians_round_trip(imported, release):
+    t = release.tensors
+    # Two view files of one frame are merged, in path order (0_CAM_BACK before 0_CAM_FRONT).
+    assert_gaussians(imported.scene("scene_0000").frame(0).gaussians(), stacked(expected(t[BACK0]), expected(t[FRONT0])))
+    assert_gaussians(imported.scene("scene_0000").frame(1).gaussians(), expected(t[FRONT1]))
+    assert_gaussians(imported.scene("scene_0002").frame(0).gaussians(), expected(t[S2F0]))
+    g = imported.scene("scene_0002").frame(1).gaussians()
+    assert_gaussians(g, expected(t[S2F3]))
+    assert g["xyz"].shape == (3, 3) and g["feature"].shape == (3, 3) and g["opacity"].shape == (3,)
+
+
+def test_qa_records_are_mapped(imported):
+    rows = {r["sample_id"]: r for r in imported.qa().to_pylist()}
+    assert sorted(rows) == ["q1", "q2", "q3", "q4"]
+    assert {k: r["task"] for k, r in rows.items()} == {"q1": "rdp", "q2": "vg2d", "q3": "vg3d", "q4": "plan"}
+    q2 = rows["q2"]
+    assert q2["conversations"] == [
+        {"from": "human", "value": "Based on <gauss>, where is it?"},
+        {"from": "gpt", "value": "answer of q2"},
+    ]
+    assert q2["category"] == "NuInteract_2DVG/2D_perception_location"
+    assert (q2["scene_token"], q2["frame_idx"], q2["split"]) == ("scene_0000", 1, "train")
+    assert q2["gauss"] == ["scenes/scene_0000/gaussians/00001.arrow"]
+    assert (q2["image"], q2["views"]) == (["images/q2.png"], ["CAM_FRONT"])
+    assert json.loads(q2["gt"])["gauss_paths"] == [FRONT1]
+    assert (rows["q4"]["scene_token"], rows["q4"]["split"]) == ("scene_0002", "val")
+    assert [r["sample_id"] for r in imported.qa(split="train", task="vg3d").to_pylist()] == ["q3"]
+
+
+def test_meta_records_what_the_release_lacks(imported):
+    meta = imported.meta
+    assert meta["format"] == "gaussiandwm_release"
+    assert meta["modalities"]["images"] is False and meta["modalities"]["gaussians"] is True
+    assert meta["gaussians"]["files_by_color_source"] == {"sh_dc": 2, "grey": 3}
+    assert meta["gaussians"]["frame"] == "as released (no pose_dir given)"
+    assert meta["qa"]["by_task"] == {"rdp": 1, "vg2d": 1, "vg3d": 1, "plan": 1}
+    assert (meta["num_scenes"], meta["num_frames"], meta["cameras"]) == (2, 4, [])
+
+
+def test_pose_dir_moves_gaussians_into_ego(release, tmp_path):
+    poses = release.root / "poses"
+    poses.mkdir()
+    w2e = [pose_matrix([np.cos(a / 2), 0, 0, np.sin(a / 2)], [1.0 + a, -2.0, 0.5]) for a in (0.3, -0.7)]
+    (poses / "0.txt").write_text("".join(" ".join(map(str, m.reshape(-1))) + "\n" for m in w2e))
+    (poses / "2.txt").write_text("\n".join(" ".join(map(str, np.eye(4).reshape(-1))) for _ in range(4)))
+    ds = GSQADataset(build(ReleaseConfig(pose_dir="poses"), tmp_path / "posed", str(release.root)))
+    scene = ds.scene("scene_0000")
+    np.testing.assert_allclose(scene.ego_poses[1], np.linalg.inv(w2e[1]), atol=1e-6)
+    got, raw = scene.frame(1).gaussians(), expected(release.tensors[FRONT1])
+    np.testing.assert_allclose(got["xyz"], raw["xyz"] @ w2e[1][:3, :3].T + w2e[1][:3, 3], atol=1e-4)
+    # Orientation: rotation matrix of the stored quaternion == R_world2ego @ R_release.
+    for q_got, q_raw in zip(got["rotation"], raw["rotation"], strict=True):
+        want = w2e[1][:3, :3] @ pose_matrix(q_raw, [0, 0, 0])[:3, :3]
+        np.testing.assert_allclose(pose_matrix(q_got, [0, 0, 0])[:3, :3], want, atol=1e-5)
+    np.testing.assert_allclose(got["scale"], raw["scale"], rtol=1e-6)
+    assert ds.meta["gaussians"]["frame"] == "ego (world->ego from pose_dir)"
+
+
+def test_ids_from_release_paths():
+    assert ids_from_path(Path(FRONT1)) == (0, 1)
+    assert ids_from_path(Path(S2F3)) == (2, 3)
+    assert ids_from_path(Path("gauss/scene-0011/00042.pth")) == (11, 42)
+    assert ids_from_path(Path("gauss/misc/model.pth")) is None
+
+
+def test_missing_gauss_token_names_sample_and_line(release, tmp_path):
+    records = [
+        record("ok", 0, 0, [FRONT0], "NuInteract_RD&P", "prediction", "<gauss> fine"),
+        record("nogauss", 0, 1, [FRONT1], "NuInteract_RD&P", "prediction", "What is likely to happen next?"),
+    ]
+    write_jsonl(release.root / "qa_train.jsonl", records)
+    root = tmp_path / "out"
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(), root, str(release.root))
+    assert str(e.value) == (
+        "qa_train.jsonl:2 sample 'nogauss': first user turn lacks '<gauss>' although the record has gauss_paths "
+        "(set insert_gauss_token=true to prepend it)"
+    )
+    assert_nothing_published(root)
+    ds = GSQADataset(build(ReleaseConfig(insert_gauss_token=True), root, str(release.root)))
+    turns = {r["sample_id"]: r["conversations"][0]["value"] for r in ds.qa().to_pylist()}
+    assert turns["nogauss"] == "<gauss>\nWhat is likely to happen next?"
+    assert turns["ok"] == "<gauss> fine"
+    assert ds.meta["qa"]["gauss_token_inserted"] == 1
+
+
+def test_malformed_jsonl_line_names_file_and_line(release, tmp_path):
+    with open(release.root / "qa_val.jsonl", "a") as f:
+        f.write('{"sample_uid": \n')
+    root = tmp_path / "out"
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(), root, str(release.root))
+    assert str(e.value) == "qa_val.jsonl:2: malformed JSON (Expecting value at column 16)"
+    assert_nothing_published(root)
+
+
+def test_unmapped_qa_group_is_an_error(release, tmp_path):
+    write_jsonl(release.root / "qa_val.jsonl", [record("x", 2, 0, [S2F0], "Mystery", "m", "<gauss> ?")])
+    with pytest.raises(DataError, match=r"^qa_val.jsonl:1 sample 'x': qa_group 'Mystery' has no task mapping"):
+        build(ReleaseConfig(), tmp_path / "out", str(release.root))
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("_xyz", "nan", "field '_xyz' has NaN/Inf (1 values, first at row 2)"),
+        ("_rotation", "shape", "field '_rotation' has shape [6, 3], expected [6, 4]"),
+        ("_rotation", "zero", "field '_rotation' has a zero quaternion at row 4"),
+        ("_language_feature", "shape", "field '_language_feature' has shape [6, 3], expected [6, 3]"),
+    ],
+)
+def test_bad_gaussians_name_file_and_field(release, tmp_path, field, value, message):
+    fields = gaussian_fields(6, seed=9)
+    if value == "nan":
+        fields[field][2, 1] = float("nan")
+    elif value == "zero":
+        fields[field][4] = 0.0
+    elif field == "_rotation":
+        fields[field] = fields[field][:, :3]
+    write_pth(release.root / FRONT1, fields, nested=True)
+    root = tmp_path / "out"
+    cfg = ReleaseConfig(feature_dim=4) if field == "_language_feature" else ReleaseConfig()
+    with pytest.raises(DataError) as e:
+        build(cfg, root, str(release.root))
+    want = message.replace("expected [6, 3]", "expected [6, 4]") if field == "_language_feature" else message
+    assert str(e.value) == f"{FRONT1}: {want}"
+    assert_nothing_published(root)
+
+
+def test_pickled_object_is_refused_by_weights_only_loading(release, tmp_path):
+    fields = gaussian_fields(3, seed=1)
+    fields["_xyz"] = NotATensor()
+    write_pth(release.root / S2F3, fields)
+    root = tmp_path / "out"
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(), root, str(release.root))
+    assert str(e.value).startswith(
+        f"{S2F3}: refused by torch.load(weights_only=True): Unsupported global: "
+        "GLOBAL tests.pipelines.data.fixtures_release.NotATensor was not an allowed global by default."
+    )
+    assert_nothing_published(root)
+
+
+def test_numpy_array_fields_load(release, tmp_path):
+    fields = {k: v.numpy() for k, v in gaussian_fields(4, seed=7).items()}
+    write_pth(release.root / S2F3, fields, nested=True)
+    ds = GSQADataset(build(ReleaseConfig(), tmp_path / "out", str(release.root)))
+    np.testing.assert_array_equal(ds.scene("scene_0002").frame(1).gaussians()["xyz"], fields["_xyz"])
+
+
+def test_source_is_required(tmp_path):
+    with pytest.raises(DataError, match=r"^source= is required"):
+        build(ReleaseConfig(), tmp_path / "out", None)
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(), tmp_path / "out", str(tmp_path / "nope"))
+    assert str(e.value) == f"source={tmp_path / 'nope'}: no such directory"
