@@ -2,7 +2,7 @@
 
 A dataset root looks like::
 
-    dataset.json                 name, layout version, cameras, counts, fingerprint (written last)
+    dataset.json                 name, layout version, scene ids, cameras, counts, fingerprint (written last)
     scenes.parquet               one row per scene
     frames.parquet               one row per (scene, frame)
     cameras.parquet              intrinsics + sensor->ego extrinsics per (scene, camera)
@@ -153,8 +153,8 @@ LIDAR_SCHEMA = pa.schema(
 )
 
 
-def gaussian_schema(feature_dim: int) -> pa.Schema:
-    """Gaussians of one frame in its ego frame; activated values, not logits."""
+def gaussian_schema(feature_dim: int, frame: str = "ego") -> pa.Schema:
+    """Gaussians of one frame (in its ego frame unless ``frame`` says otherwise); activated values, not logits."""
     return pa.schema(
         [
             ("xyz", _fsl(3)),  # centre, metres, ego frame
@@ -164,7 +164,7 @@ def gaussian_schema(feature_dim: int) -> pa.Schema:
             ("color", _fsl(3)),  # linear RGB in [0, 1]
             ("feature", _fsl(feature_dim)),  # compact feature code z_i
         ],
-        metadata={b"gdwm.feature_dim": str(feature_dim).encode(), b"gdwm.frame": b"ego"},
+        metadata={b"gdwm.feature_dim": str(feature_dim).encode(), b"gdwm.frame": frame.encode()},
     )
 
 
@@ -248,12 +248,12 @@ def check_gaussians(arrays: Mapping[str, np.ndarray], where: str) -> None:
         raise DataError(f"{where}: Gaussian field 'opacity' is outside [0, 1] (expected probabilities, not logits)")
 
 
-def gaussians_table(arrays: Mapping[str, np.ndarray], where: str = "gaussians") -> pa.Table:
+def gaussians_table(arrays: Mapping[str, np.ndarray], where: str = "gaussians", frame: str = "ego") -> pa.Table:
     check_gaussians(arrays, where)
     rot = np.asarray(arrays["rotation"], dtype=np.float32)
     rot = rot / np.linalg.norm(rot, axis=1, keepdims=True)
     feat = np.asarray(arrays["feature"], dtype=np.float32)
-    schema = gaussian_schema(feat.shape[1])
+    schema = gaussian_schema(feat.shape[1], frame)
     cols = [
         fsl_array(arrays["xyz"], 3),
         fsl_array(arrays["scale"], 3),
@@ -270,6 +270,23 @@ def write_arrow(table: pa.Table, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with pa.OSFile(str(path), "wb") as sink, pa.ipc.new_file(sink, table.schema) as writer:
         writer.write_table(table)
+
+
+def read_image_file(path: Path, where: str, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
+    """Decode a PNG/JPEG (BGR, or as stored with IMREAD_UNCHANGED); missing/truncated/undecodable -> DataError."""
+    if not path.is_file():
+        raise DataError(f"{where}: missing image {path}")
+    data = path.read_bytes()
+    # OpenCV decodes a truncated JPEG/PNG with only a warning (grey bottom rows); the end marker tells.
+    tail = data.rstrip(b"\0")
+    if data[:2] == b"\xff\xd8" and not tail.endswith(b"\xff\xd9"):
+        raise DataError(f"{where}: image unreadable {path} (truncated JPEG)")
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and not tail.endswith(b"IEND\xaeB`\x82"):
+        raise DataError(f"{where}: image unreadable {path} (truncated PNG)")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    if img is None:
+        raise DataError(f"{where}: image unreadable {path} (not a decodable image)")
+    return img
 
 
 def encode_depth(depth_m: np.ndarray) -> np.ndarray:
@@ -385,8 +402,8 @@ class DatasetWriter:
         cols = [pa.array(pts[:, i]) for i in range(4)]
         write_arrow(pa.Table.from_arrays(cols, schema=LIDAR_SCHEMA), self.path(rel))
 
-    def write_gaussians(self, rel: str, arrays: Mapping[str, np.ndarray]) -> None:
-        write_arrow(gaussians_table(arrays, where=rel), self.path(rel))
+    def write_gaussians(self, rel: str, arrays: Mapping[str, np.ndarray], frame: str = "ego") -> None:
+        write_arrow(gaussians_table(arrays, where=rel, frame=frame), self.path(rel))
 
     # -- publish
     def _publish(self) -> None:
@@ -403,6 +420,7 @@ class DatasetWriter:
             "source": self.source,
             "cameras": sorted({r["camera"] for r in self._tables["cameras"].rows}, key=_camera_order),
             "num_scenes": scenes,
+            "scenes": [r["scene_id"] for r in self._tables["scenes"].rows],
             "num_frames": frames,
             "num_files": nfiles,
             "bytes": nbytes,

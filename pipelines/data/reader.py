@@ -29,6 +29,7 @@ from pipelines.data.layout import (
     gaussians_relpath,
     image_relpath,
     lidar_relpath,
+    read_image_file,
 )
 
 
@@ -189,14 +190,14 @@ class Frame:
         if weather not in self.scene.weathers:
             raise DataError(f"{self.where} {camera}: scene has no '{weather}' variant (has {self.scene.weathers})")
         path = self.scene.ds.root / image_relpath(self.scene.id, camera, self.idx, weather)
-        img = _imread(path, cv2.IMREAD_COLOR, f"{self.where} {camera}")
+        img = read_image_file(path, f"{self.where} {camera}")
         return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
     def depth(self, camera: str) -> np.ndarray:
         """[H, W] float32 metres, 0 where there is no depth."""
         self._camera(camera)
         path = self.scene.ds.root / depth_relpath(self.scene.id, camera, self.idx)
-        raw = _imread(path, cv2.IMREAD_UNCHANGED, f"{self.where} {camera} depth")
+        raw = read_image_file(path, f"{self.where} {camera} depth", cv2.IMREAD_UNCHANGED)
         if raw.dtype != np.uint16:
             raise DataError(f"{self.where} {camera}: depth image {path} is {raw.dtype}, expected uint16")
         return decode_depth(raw)
@@ -232,17 +233,3 @@ def gaussians_from_table(t: pa.Table) -> dict[str, np.ndarray]:
     out["opacity"] = t["opacity"].to_numpy()
     out["feature"] = fsl_to_numpy(t["feature"], t.schema.field("feature").type.list_size)
     return out
-
-
-def _imread(path: Path, flags: int, where: str) -> np.ndarray:
-    if not path.is_file():
-        raise DataError(f"{where}: missing image {path}")
-    data = path.read_bytes()
-    # OpenCV decodes a truncated JPEG/PNG with only a warning; the end markers tell.
-    truncated = (data[:8] == b"\x89PNG\r\n\x1a\n" and not data.rstrip(b"\0").endswith(b"IEND\xaeB`\x82")) or (
-        data[:2] == b"\xff\xd8" and not data.rstrip(b"\0").endswith(b"\xff\xd9")
-    )
-    img = None if truncated else cv2.imdecode(np.frombuffer(data, np.uint8), flags)
-    if img is None:
-        raise DataError(f"{where}: image unreadable {path} (truncated or not an image)")
-    return img

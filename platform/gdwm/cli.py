@@ -34,6 +34,8 @@ class Command:
     help: str
     defaults: list[str] = field(default_factory=list)
     """Overrides applied before the user's, e.g. the data group an import command implies."""
+    flags: tuple[str, ...] = ()
+    """``--flags`` the command accepts; they reach ``run`` in its argument list."""
 
 
 def _fmt_bytes(n: int) -> str:
@@ -87,6 +89,49 @@ def _data_info(cfg: DictConfig, _args: list[str]) -> int:
     return 0
 
 
+def _run(cfg: DictConfig, args: list[str]) -> int:
+    from gdwm.dag import DagError
+    from gdwm.runner import RunError, run_pipeline
+
+    try:
+        summary = run_pipeline(cfg, dry_run="--dry-run" in args)
+    except DagError as e:
+        err_console.print(f"gdwm run: pipeline error: {e}", markup=False)
+        return 2
+    except RunError as e:
+        err_console.print(f"gdwm run: {e}", markup=False)
+        return 1
+    if summary.failed:
+        for msg in summary.failed.values():
+            err_console.print(f"gdwm run: {msg}", markup=False)
+        return 1
+    return 0
+
+
+def _status(cfg: DictConfig, _args: list[str]) -> int:
+    from gdwm.tracking import TrackingBackend
+
+    backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
+    runs = backend.search_runs("", max_results=30, order_by=["attributes.start_time DESC"])
+    t = Table(title=f"recent runs in {cfg.tracking.uri}", header_style="bold")
+    for col in ("run id", "name", "kind", "stage", "status", "started", "cache key"):
+        t.add_column(col)
+    for r in runs:
+        tags = r["tags"]
+        started = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(r["start_time"] / 1000)) if r["start_time"] else ""
+        t.add_row(
+            r["run_id"][:12],
+            r["name"] or "",
+            tags.get("gdwm.kind", ""),
+            tags.get("gdwm.stage", ""),
+            r["status"],
+            started,
+            tags.get("gdwm.cache_key", "")[:12],
+        )
+    console.print(t)
+    return 0
+
+
 def _config_show(cfg: DictConfig, _args: list[str]) -> int:
     console.print(OmegaConf.to_yaml(cfg), end="", markup=False)
     return 0
@@ -106,6 +151,14 @@ COMMANDS: dict[str, dict[str, Command]] = {
     "config": {
         "show": Command(_config_show, "print the resolved config"),
     },
+    "run": {
+        "": Command(
+            _run, "run the pipeline DAG (targets=[...], pipeline=..., --dry-run prints the plan)", flags=("--dry-run",)
+        ),
+    },
+    "status": {
+        "": Command(_status, "list recent MLflow runs of the configured store"),
+    },
 }
 
 
@@ -123,10 +176,14 @@ def _groups_help() -> str:
 
 def usage(command: str | None = None) -> str:
     if command is None:
-        lines = ["usage: gdwm <command> <subcommand> [overrides...]", "", "commands:"]
+        lines = ["usage: gdwm <command> [subcommand] [overrides...]", "", "commands:"]
         for name, subs in COMMANDS.items():
             for sub, c in subs.items():
-                lines.append(f"  {name + ' ' + sub:<26} {c.help}")
+                lines.append(f"  {(name + ' ' + sub).strip():<26} {c.help}")
+    elif "" in COMMANDS[command]:
+        c = COMMANDS[command][""]
+        flags = " ".join(f"[{f}]" for f in c.flags)
+        lines = [f"usage: gdwm {command} {flags + ' ' if flags else ''}[overrides...]", "", c.help]
     else:
         lines = [f"usage: gdwm {command} <subcommand> [overrides...]", "", "subcommands:"]
         for sub, c in COMMANDS[command].items():
@@ -147,10 +204,11 @@ def main(argv: list[str] | None = None) -> int:
     if command not in COMMANDS:
         err_console.print(f"gdwm: unknown command '{command}'; commands: {', '.join(COMMANDS)}", markup=False)
         return 2
-    if not rest or rest[0] in ("-h", "--help"):
+    single = "" in COMMANDS[command]
+    if (not rest and not single) or (rest and rest[0] in ("-h", "--help")):
         print(usage(command))
         return 0 if rest else 2
-    sub, overrides = rest[0], rest[1:]
+    sub, overrides = ("", rest) if single else (rest[0], rest[1:])
     if sub not in COMMANDS[command]:
         err_console.print(
             f"gdwm {command}: unknown subcommand '{sub}'; subcommands: {', '.join(COMMANDS[command])}", markup=False
@@ -158,9 +216,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     spec = COMMANDS[command][sub]
     if any(o in ("-h", "--help") for o in overrides):
-        print(f"usage: gdwm {command} {sub} [overrides...]\n\n{spec.help}\n\n{_groups_help()}")
+        head = usage(command) if not sub else f"usage: gdwm {command} {sub} [overrides...]\n\n{spec.help}"
+        print(f"{head}\n\n{_groups_help()}")
         return 0
-    flags = [o for o in overrides if o.startswith("--")]
+    flags = [o for o in overrides if o.startswith("--") and o not in spec.flags]
     if flags:
         err_console.print(
             f"gdwm {command} {sub}: unknown flag(s) {flags}; settings are overrides KEY=VALUE", markup=False
@@ -168,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     defaults = [d for d in spec.defaults if not _user_sets_group(overrides, d.split("=", 1)[0])]
     try:
-        cfg = load_config([*defaults, *overrides])
+        cfg = load_config([*defaults, *(o for o in overrides if not o.startswith("--"))])
     except ConfigError as e:
         err_console.print(f"gdwm: config error: {e}", markup=False)
         return 2

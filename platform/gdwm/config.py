@@ -25,7 +25,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 PLUGIN_GROUP = "gdwm.plugins"
-MAIN_GROUPS = ("data", "cluster", "tracking")
+MAIN_GROUPS = ("data", "pipeline", "cluster", "tracking")
 
 
 class ConfigError(Exception):
@@ -79,6 +79,36 @@ class TrackingConfig:
 
 
 @dataclass
+class CacheConfig:
+    """Content-addressed stage cache (DESIGN §4)."""
+
+    uri: str = "${abspath:${workdir}}/cache"
+    """A pyarrow.fs URI or local path: file:///..., s3://bucket/prefix, gs://..."""
+    verify: bool = True
+    """Verify sha256 of every file on lookup (a corrupted entry is reported and recomputed)."""
+
+
+@dataclass
+class RunSettings:
+    """How ``gdwm run`` executes the DAG."""
+
+    on_scene_error: str = "fail"
+    """Per-scene user errors: ``fail`` the stage after the other scenes finish, or ``skip`` the scene."""
+    max_retries: int = 3
+    """Retries of a task or actor call whose worker process died (user errors are not retried)."""
+    checkpoint_every: int = 1
+    """Training stages report a checkpoint every N steps."""
+    max_failures: int = 2
+    """Ray Train FailureConfig: worker-group restarts from the last checkpoint."""
+    plan: bool = False
+    """Print the plan (cached / to run / blocked per stage and scene) and exit; same as --dry-run."""
+    live: bool = True
+    """Show the rich live view while running (off when stdout is not a terminal)."""
+    worker_logs: bool = False
+    """Stream Ray workers' stdout/stderr to the driver (errors reach MLflow as error.txt either way)."""
+
+
+@dataclass
 class GdwmConfig:
     """Top level of every composed config."""
 
@@ -96,12 +126,27 @@ class GdwmConfig:
     """Ray cluster profile (group ``cluster/``)."""
     tracking: Any = MISSING
     """MLflow tracking profile (group ``tracking/``)."""
+    pipeline: Any = None
+    """Stage DAG (group ``pipeline/``)."""
+    stage: Any = field(default_factory=dict)
+    """Per-stage settings (groups ``stage/<name>/``)."""
+    model: Any = field(default_factory=dict)
+    """Model components and variants (groups ``model/<component>/``)."""
+    targets: list[str] = field(default_factory=list)
+    """Stages to produce; only they and their ancestors run. Empty = the whole pipeline."""
+    cache: CacheConfig = field(default_factory=CacheConfig)
+    """Stage cache."""
+    run: RunSettings = field(default_factory=RunSettings)
+    """Execution policy."""
 
 
 def _register_platform(cs: ConfigStore) -> None:
     cs.store(name="gdwm_schema", node=GdwmConfig)
     cs.store(group="schema/cluster", name="cluster", node=ClusterConfig)
     cs.store(group="schema/tracking", name="tracking", node=TrackingConfig)
+    from gdwm.dag import PipelineConfig
+
+    cs.store(group="schema/pipeline", name="pipeline", node=PipelineConfig)
 
 
 @cache
@@ -134,13 +179,16 @@ def conf_dir() -> Path:
 
 
 def group_options(group: str) -> list[str]:
-    root = conf_dir() / group
-    return sorted(p.stem for p in root.glob("*.yaml")) if root.is_dir() else []
+    roots = [conf_dir(), *(Path(p) for p in os.environ.get("GDWM_CONF_PATH", "").split(os.pathsep) if p)]
+    return sorted({p.stem for r in roots if (r / group).is_dir() for p in (r / group).glob("*.yaml")})
 
 
 def load_config(overrides: list[str] | tuple[str, ...] = (), config_name: str = "config") -> DictConfig:
     """Compose and validate; every interpolation is resolved so missing values fail here, not mid-run."""
     _register_all()
+    extra = [p for p in os.environ.get("GDWM_CONF_PATH", "").split(os.pathsep) if p]
+    if extra:  # user / plugin config trees searched after conf/
+        overrides = [f"hydra.searchpath=[{','.join('file://' + str(Path(p).resolve()) for p in extra)}]", *overrides]
     try:
         with initialize_config_dir(config_dir=str(conf_dir()), version_base="1.3"):
             cfg = compose(config_name=config_name, overrides=list(overrides))

@@ -16,7 +16,6 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
 FRONT0 = "gauss/output-full-6v/0_CAM_FRONT/langsplat_3/per_frame/00000.pth"

@@ -92,7 +92,9 @@ def test_scenes_and_frames_follow_records_then_paths(imported):
 def test_gaussians_round_trip(imported, release):
     t = release.tensors
     # Two view files of one frame are merged, in path order (0_CAM_BACK before 0_CAM_FRONT).
-    assert_gaussians(imported.scene("scene_0000").frame(0).gaussians(), stacked(expected(t[BACK0]), expected(t[FRONT0])))
+    assert_gaussians(
+        imported.scene("scene_0000").frame(0).gaussians(), stacked(expected(t[BACK0]), expected(t[FRONT0]))
+    )
     assert_gaussians(imported.scene("scene_0000").frame(1).gaussians(), expected(t[FRONT1]))
     assert_gaussians(imported.scene("scene_0002").frame(0).gaussians(), expected(t[S2F0]))
     g = imported.scene("scene_0002").frame(1).gaussians()
@@ -191,31 +193,47 @@ def test_unmapped_qa_group_is_an_error(release, tmp_path):
         build(ReleaseConfig(), tmp_path / "out", str(release.root))
 
 
+def _nan_xyz(f):
+    f["_xyz"][2, 1] = float("nan")
+
+
+def _rotation_3(f):
+    f["_rotation"] = f["_rotation"][:, :3]
+
+
+def _zero_rotation(f):
+    f["_rotation"][4] = 0.0
+
+
+def _huge_scaling(f):
+    f["_scaling"][1, 0] = 200.0
+
+
 @pytest.mark.parametrize(
-    ("field", "value", "message"),
+    ("corrupt", "message"),
     [
-        ("_xyz", "nan", "field '_xyz' has NaN/Inf (1 values, first at row 2)"),
-        ("_rotation", "shape", "field '_rotation' has shape [6, 3], expected [6, 4]"),
-        ("_rotation", "zero", "field '_rotation' has a zero quaternion at row 4"),
-        ("_language_feature", "shape", "field '_language_feature' has shape [6, 3], expected [6, 3]"),
+        (_nan_xyz, "field '_xyz' has NaN/Inf (1 values, first at row 2)"),
+        (_rotation_3, "field '_rotation' has shape [6, 3], expected [6, 4]"),
+        (_zero_rotation, "field '_rotation' has a zero quaternion at row 4"),
+        (_huge_scaling, "field '_scaling' gives exp(_scaling) outside float32 range (1 values, first at row 1)"),
     ],
 )
-def test_bad_gaussians_name_file_and_field(release, tmp_path, field, value, message):
+def test_bad_gaussians_name_file_and_field(release, tmp_path, corrupt, message):
     fields = gaussian_fields(6, seed=9)
-    if value == "nan":
-        fields[field][2, 1] = float("nan")
-    elif value == "zero":
-        fields[field][4] = 0.0
-    elif field == "_rotation":
-        fields[field] = fields[field][:, :3]
+    corrupt(fields)
     write_pth(release.root / FRONT1, fields, nested=True)
     root = tmp_path / "out"
-    cfg = ReleaseConfig(feature_dim=4) if field == "_language_feature" else ReleaseConfig()
     with pytest.raises(DataError) as e:
-        build(cfg, root, str(release.root))
-    want = message.replace("expected [6, 3]", "expected [6, 4]") if field == "_language_feature" else message
-    assert str(e.value) == f"{FRONT1}: {want}"
+        build(ReleaseConfig(), root, str(release.root))
+    assert str(e.value) == f"{FRONT1}: {message}"
     assert_nothing_published(root)
+
+
+def test_feature_width_must_match_config(release, tmp_path):
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(feature_dim=4), tmp_path / "out", str(release.root))
+    # The first file read is scene 0 frame 0's 0_CAM_BACK view (5 Gaussians).
+    assert str(e.value) == f"{BACK0}: field '_language_feature' has shape [5, 3], expected [5, 4]"
 
 
 def test_pickled_object_is_refused_by_weights_only_loading(release, tmp_path):
@@ -245,3 +263,52 @@ def test_source_is_required(tmp_path):
     with pytest.raises(DataError) as e:
         build(ReleaseConfig(), tmp_path / "out", str(tmp_path / "nope"))
     assert str(e.value) == f"source={tmp_path / 'nope'}: no such directory"
+
+
+def test_split_by_scene_when_file_names_say_nothing(release, tmp_path):
+    (release.root / "qa_train.jsonl").rename(release.root / "nuinteract_part1.jsonl")
+    (release.root / "qa_val.jsonl").rename(release.root / "nuinteract_part2.jsonl")
+    ds = GSQADataset(build(ReleaseConfig(val_fraction=0.5), tmp_path / "out", str(release.root)))
+    assert {r["sample_id"]: r["split"] for r in ds.qa().to_pylist()} == {
+        "q1": "train",
+        "q2": "train",
+        "q3": "train",
+        "q4": "val",
+    }
+
+
+def test_duplicate_sample_uid_names_both_lines(release, tmp_path):
+    with open(release.root / "qa_val.jsonl", "a") as f:
+        f.write(json.dumps(record("q2", 2, 0, [S2F0], "NuInteract_RD&P", "prediction", "<gauss> again")) + "\n")
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(), tmp_path / "out", str(release.root))
+    assert str(e.value) == "qa_val.jsonl:2: sample_uid 'q2' already used at qa_train.jsonl:2"
+
+
+def test_missing_and_conflicting_gauss_paths(release, tmp_path):
+    bad = [record("gone", 0, 0, ["gauss/nowhere/00000.pth"], "NuInteract_RD&P", "prediction", "<gauss> ?")]
+    write_jsonl(release.root / "qa_val.jsonl", bad)
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(), tmp_path / "out", str(release.root))
+    assert (
+        str(e.value)
+        == f"qa_val.jsonl:1 sample 'gone': gauss path gauss/nowhere/00000.pth not found under {release.root}"
+    )
+    clash = [record("clash", 2, 0, [FRONT1], "NuInteract_RD&P", "prediction", "<gauss> ?")]
+    write_jsonl(release.root / "qa_val.jsonl", clash)
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(), tmp_path / "out", str(release.root))
+    assert str(e.value) == (
+        f"{FRONT1}: listed as scene 0 frame 1 at qa_train.jsonl:2 but as scene 2 frame 0 at qa_val.jsonl:1 "
+        "(sample 'clash')"
+    )
+
+
+def test_unlisted_file_without_ids_in_its_path(release, tmp_path):
+    write_pth(release.root / "gauss" / "misc" / "model.pth", gaussian_fields(2, seed=3))
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(), tmp_path / "out", str(release.root))
+    assert str(e.value) == (
+        "gauss/misc/model.pth: no QA record lists it and its path names no scene/frame "
+        "(expected .../scene_<n>/<frame>.pth or .../<n>_<view>/.../<frame>.pth)"
+    )

@@ -1,0 +1,284 @@
+"""Importer of the public GaussianDWM release into the NuScenes-GSQA layout (``gdwm data import-gaussiandwm``).
+
+Expected release folder (``source=``), as in the release's ``examples/dummy_data``::
+
+    <source>/
+      qa_train.jsonl, qa_val.jsonl, ...       QA records (see gaussiandwm_qa); any ``qa_glob`` match
+      gauss/**/<frame>.pth                    per-frame Gaussian state dicts (see gaussiandwm_pth), e.g.
+                                              gauss/output-full-6v/0_CAM_FRONT/langsplat_3/per_frame/00000.pth
+                                              gauss/scene_0002/frame_00000.pth
+      poses/<scene_idx>.txt                   optional world->ego rows, one per frame (``pose_dir``)
+
+Scene and frame of a ``.pth``: from the QA records that list it in ``gauss_paths`` (their
+``scene_idx``/``frame_idx``); a file no record lists takes them from its path: the deepest folder
+named ``scene_<n>``/``scene-<n>`` or ``<n>_<anything>`` is the scene, the trailing number of the file
+name the frame. Several files of one frame (e.g. one per view) are merged into its Gaussians.
+Scene ids are ``scene_<idx:04d>`` (the release's numbering, not nuScenes scene names); frames are
+renumbered 0..F-1 per scene in original order, the original index kept in ``frames.token``.
+
+The release has no images, cameras, LiDAR, boxes or timestamps: those tables stay empty (or null),
+``dataset.json`` says so, and ``qa.image`` keeps the release's own image paths.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipelines.data.config import DatasetConfig
+from pipelines.data.gaussiandwm_poses import read_pose_file, transform_gaussians
+from pipelines.data.gaussiandwm_pth import concat, read_release_gaussians
+from pipelines.data.gaussiandwm_qa import DEFAULT_TASK_MAP, ReleaseRecord, map_task, read_qa_file
+from pipelines.data.layout import DataError, DatasetWriter, flat_pose, gaussians_relpath
+from pipelines.data.scene_splits import split_scenes
+
+log = logging.getLogger(__name__)
+
+FORMAT = "gaussiandwm_release"
+_SCENE_DIR = re.compile(r"scene[_-]?(\d+)|(\d+)_.+", re.IGNORECASE)
+_FRAME_STEM = re.compile(r"(\d+)$")
+
+
+@dataclass
+class ReleaseConfig(DatasetConfig):
+    """Import of the public GaussianDWM release (Gaussians + QA, no images)."""
+
+    name: str = "gaussiandwm_release"
+    """Dataset name; also the folder under ``<workdir>/data/``."""
+    builder: str = "pipelines.data.gaussiandwm.build"
+    """Dotted path of the importer."""
+    gauss_glob: str = "gauss/**/*.pth"
+    """Glob (relative to the source) of the per-frame Gaussian ``.pth`` files to import."""
+    qa_glob: str = "**/*.jsonl"
+    """Glob (relative to the source) of the QA JSONL files."""
+    gauss_root: str = ""
+    """Folder (relative to the source) that the records' ``gauss_paths`` are relative to."""
+    feature_dim: int = 3
+    """Width of ``_language_feature`` (the compact feature code); other widths are an error."""
+    pose_dir: str = ""
+    """Optional folder (relative to the source) of world->ego pose files; empty keeps the release's frame."""
+    pose_template: str = "{scene_idx}.txt"
+    """File name of a scene's pose file inside ``pose_dir``."""
+    insert_gauss_token: bool = False
+    """Prepend ``<gauss>`` to a first user turn that lacks it (else such a record is an error)."""
+    val_fraction: float = 0.1
+    """Share of scenes (the last, by id) whose records go to ``val`` when neither record nor file name says."""
+    task_map: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_TASK_MAP))
+    """``qa_group`` or ``"<qa_group>/<qa_subtask>"`` -> task family (rdp, vg2d, vg3d, plan, traj)."""
+
+
+@dataclass
+class _Frame:
+    orig: int  # the release's frame_idx
+    files: set[Path] = field(default_factory=set)
+
+
+def build(cfg: ReleaseConfig, root: Path, source: str | None, overwrite: bool = False) -> Path:
+    """Import the release at ``source`` into a dataset at ``root``; returns the published root."""
+    src = _require_source(source)
+    records = _read_records(src, cfg)
+    frames = _collect_frames(src, cfg, records)
+    scene_keys = sorted(frames, key=_scene_sort_key)
+    clash = [k for k, n in Counter(map(scene_id, scene_keys)).items() if n > 1]
+    if clash:
+        raise DataError(f"source={src}: scene_idx values map to the same scene id {clash} (an int and a name)")
+    dense = {s: {f: i for i, f in enumerate(sorted(frames[s]))} for s in scene_keys}
+    # Rows first: a bad record fails before any Gaussian is read.
+    qa_rows = _qa_rows(records, frames, dense, split_scenes(scene_keys, cfg.val_fraction), cfg.task_map)
+    colors: Counter = Counter()
+    with DatasetWriter(root, cfg.name, source=str(src), overwrite=overwrite) as w:
+        for key in scene_keys:
+            _write_scene(w, src, cfg, key, {dense[key][f]: frames[key][f] for f in dense[key]}, colors)
+        w.extend("qa", qa_rows)
+        w.extra_meta = _meta(cfg, colors, records, Counter(r["task"] for r in qa_rows))
+    return w.root
+
+
+def _write_scene(
+    w: DatasetWriter, src: Path, cfg: ReleaseConfig, key: int | str, frames: dict[int, _Frame], colors: Counter
+) -> None:
+    """One scene's rows and Gaussian files; ``frames`` maps our frame index to the release frame."""
+    sid = scene_id(key)
+    poses = _scene_poses(src, cfg, key) if cfg.pose_dir else None
+    # The release has no timestamps: frame rate and timestamps are null rather than invented.
+    w.add(
+        "scenes",
+        scene_id=sid,
+        name=str(key),
+        num_frames=len(frames),
+        frame_rate_hz=None,
+        description="",
+        weathers=[],
+        source=FORMAT,
+    )
+    for idx, frame in frames.items():
+        w.add("frames", scene_id=sid, frame_idx=idx, timestamp_us=None, token=str(frame.orig))
+        world2ego = _frame_pose(poses, frame.orig, key) if poses is not None else None
+        if world2ego is not None:
+            w.add("ego_poses", scene_id=sid, frame_idx=idx, ego2world=flat_pose(np.linalg.inv(world2ego)))
+        if not frame.files:
+            continue
+        parts = [read_release_gaussians(p, _rel(p, src), cfg.feature_dim) for p in sorted(frame.files)]
+        colors.update("sh_dc" if p.has_color else "grey" for p in parts)
+        arrays = concat(parts)
+        if world2ego is not None:
+            arrays = transform_gaussians(arrays, world2ego)
+        w.write_gaussians(gaussians_relpath(sid, idx), arrays, frame="ego" if cfg.pose_dir else "release")
+    log.info("%s: %d frames", sid, len(frames))
+
+
+def _qa_rows(records: list[ReleaseRecord], frames: dict, dense: dict, splits: dict, task_map: dict) -> list[dict]:
+    rows = []
+    for r in records:
+        sid, idx = scene_id(r.scene_idx), dense[r.scene_idx][r.frame_idx]
+        has_gauss = bool(r.gauss_paths) and bool(frames[r.scene_idx][r.frame_idx].files)
+        provenance = {
+            "source": FORMAT,
+            "scene_idx": r.scene_idx,
+            "frame_idx": r.frame_idx,
+            "qa_group": r.qa_group,
+            "qa_subtask": r.qa_subtask,
+            "gauss_paths": r.gauss_paths,
+        }
+        rows.append(
+            {
+                "sample_id": r.sample_uid,
+                "scene_token": sid,
+                "frame_idx": idx,
+                "task": map_task(r, dict(task_map)),
+                "category": f"{r.qa_group}/{r.qa_subtask}" if r.qa_subtask else r.qa_group,
+                "conversations": r.conversations,
+                "image": r.image_paths,
+                "views": r.views,
+                "gauss": [gaussians_relpath(sid, idx)] if has_gauss else [],
+                "split": r.split or splits[r.scene_idx],
+                "gt": json.dumps(provenance),  # no answer-side ground truth in the release: where the record came from
+            }
+        )
+    return rows
+
+
+def _meta(cfg: ReleaseConfig, colors: Counter, records: list[ReleaseRecord], tasks: Counter) -> dict:
+    modalities = {"gaussians": True, "qa": True, "ego_poses": bool(cfg.pose_dir)}
+    modalities |= dict.fromkeys(("images", "cameras", "lidar", "boxes", "timestamps"), False)
+    return {
+        "format": FORMAT,
+        "modalities": modalities,
+        "gaussians": {
+            "frame": "ego (world->ego from pose_dir)" if cfg.pose_dir else "as released (no pose_dir given)",
+            "feature_dim": cfg.feature_dim,
+            "files_by_color_source": dict(colors),  # sh_dc: 0.5 + C0 * _features_dc; grey: no colour in the file
+            "activation": "scale=exp(_scaling), opacity=sigmoid(_opacity), rotation=_rotation/|_rotation|",
+        },
+        "qa": {
+            "records": len(records),
+            "by_task": dict(tasks),
+            "task_map": dict(cfg.task_map),
+            "gauss_token_inserted": sum(r.gauss_token_inserted for r in records),
+            "image_paths": "relative to the release source; images are not imported",
+        },
+        "frame_index": "frames are renumbered 0..F-1 per scene; frames.token holds the release's frame_idx",
+    }
+
+
+def scene_id(scene_key: int | str) -> str:
+    """Our scene id of a release scene index (``scene_0002``) or name (kept)."""
+    return f"scene_{scene_key:04d}" if isinstance(scene_key, int) else scene_key
+
+
+def ids_from_path(rel: Path) -> tuple[int, int] | None:
+    """(scene, frame) from a release path, or None when the path does not say."""
+    frame = _FRAME_STEM.search(rel.name.split(".")[0])
+    for part in reversed(rel.parts[:-1]):
+        m = _SCENE_DIR.fullmatch(part)
+        if m and frame:
+            return int(m.group(1) or m.group(2)), int(frame.group(1))
+    return None
+
+
+def _require_source(source: str | None) -> Path:
+    if source is None:
+        raise DataError("source= is required: the folder of the GaussianDWM release (QA .jsonl + gauss/*.pth)")
+    src = Path(source).expanduser().resolve()
+    if not src.is_dir():
+        raise DataError(f"source={source}: no such directory")
+    return src
+
+
+def _read_records(src: Path, cfg: ReleaseConfig) -> list[ReleaseRecord]:
+    files = sorted(src.glob(cfg.qa_glob))
+    if not files:
+        raise DataError(f"source={src}: no QA files match qa_glob={cfg.qa_glob!r}")
+    records: list[ReleaseRecord] = []
+    seen: dict[str, str] = {}
+    for path in files:
+        for r in read_qa_file(path, path.relative_to(src).as_posix(), cfg.insert_gauss_token):
+            if r.sample_uid in seen:
+                raise DataError(f"{r.where}: sample_uid '{r.sample_uid}' already used at {seen[r.sample_uid]}")
+            seen[r.sample_uid] = r.where
+            records.append(r)
+    return records
+
+
+def _collect_frames(src: Path, cfg: ReleaseConfig, records: list[ReleaseRecord]) -> dict:
+    """scene key -> original frame index -> files, from records first, then unreferenced files' paths."""
+    frames: dict[int | str, dict[int, _Frame]] = defaultdict(dict)
+    owner: dict[Path, tuple[int | str, int, str]] = {}
+    for r in records:
+        key = r.scene_idx
+        # A record's frame exists even when it has no Gaussians.
+        frame = frames[key].setdefault(r.frame_idx, _Frame(r.frame_idx))
+        for p in r.gauss_paths:
+            path = (src / cfg.gauss_root / p).resolve()
+            if not path.is_file():
+                where = f"{r.where} sample '{r.sample_uid}'"
+                raise DataError(f"{where}: gauss path {p} not found under {src / cfg.gauss_root}")
+            prev = owner.setdefault(path, (key, r.frame_idx, r.where))
+            if prev[:2] != (key, r.frame_idx):
+                raise DataError(
+                    f"{_rel(path, src)}: listed as scene {prev[0]} frame {prev[1]} at {prev[2]} "
+                    f"but as scene {key} frame {r.frame_idx} at {r.where} (sample '{r.sample_uid}')"
+                )
+            frame.files.add(path)
+    for found in sorted(src.glob(cfg.gauss_glob)):
+        path, rel = found.resolve(), found.relative_to(src)
+        if path in owner:
+            continue
+        ids = ids_from_path(rel)
+        if ids is None:
+            raise DataError(
+                f"{rel.as_posix()}: no QA record lists it and its path names no scene/frame "
+                "(expected .../scene_<n>/<frame>.pth or .../<n>_<view>/.../<frame>.pth)"
+            )
+        frames[ids[0]].setdefault(ids[1], _Frame(ids[1])).files.add(path)
+    if not any(f.files for scene in frames.values() for f in scene.values()):
+        raise DataError(f"source={src}: no Gaussian files (gauss_glob={cfg.gauss_glob!r}, no record lists one)")
+    return frames
+
+
+def _scene_poses(src: Path, cfg: ReleaseConfig, scene_key: int | str) -> list[np.ndarray]:
+    path = src / cfg.pose_dir / cfg.pose_template.format(scene_idx=scene_key, scene_id=scene_key)
+    return read_pose_file(path, scene_id(scene_key))
+
+
+def _frame_pose(poses: list[np.ndarray], frame: int, scene_key: int | str) -> np.ndarray:
+    if frame >= len(poses):
+        raise DataError(f"{scene_id(scene_key)}/frame {frame}: its pose file has only {len(poses)} rows")
+    return poses[frame]
+
+
+def _scene_sort_key(key: int | str) -> tuple[int, int, str]:
+    return (0, key, "") if isinstance(key, int) else (1, 0, key)
+
+
+def _rel(path: Path, src: Path) -> str:
+    try:
+        return path.relative_to(src).as_posix()
+    except ValueError:
+        return str(path)

@@ -1,0 +1,112 @@
+"""Config of the ``synthetic_mini`` procedural dataset (``conf/data/synthetic_mini.yaml``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from pipelines.data.config import DatasetConfig
+from pipelines.data.layout import WEATHERS, DataError
+
+SCENARIOS = ("curve", "stop", "lane_change", "start", "follow", "cruise")
+"""Ego behaviours, one per scene (see ``pipelines.data.synth.scenarios``)."""
+
+
+@dataclass
+class SynthConfig(DatasetConfig):
+    """Procedural driving scenes with 6 surround cameras, LiDAR, boxes and QA of every task family."""
+
+    name: str = "synthetic_mini"
+    """Dataset name; also the folder under ``<workdir>/data/``."""
+    builder: str = "pipelines.data.synth.build.build"
+    """Dotted path of the generator."""
+    num_scenes: int = 4
+    """Scenes to generate (``scene-0000`` ...)."""
+    num_frames: int = 10
+    """Frames per scene; trajectory QA needs >= 10 (4 history + 6 future) and is skipped below that."""
+    frame_rate_hz: float = 2.0
+    """Frame rate (nuScenes keyframes are 2 Hz)."""
+    width: int = 160
+    """Image width in pixels (intrinsics are nuScenes' 1600x900 ones scaled to it)."""
+    height: int = 90
+    """Image height in pixels."""
+    seed: int = 0
+    """Master seed; scene ``i`` draws from ``default_rng([seed, i])``, so a seed fixes every byte."""
+    weathers: list[str] = field(default_factory=lambda: list(WEATHERS))
+    """Weather variants rendered per frame; must include ``clear`` (the ``images/`` folder)."""
+    val_fraction: float = 0.25
+    """Fraction of scenes (the last ones) whose QA is split ``val``; at least one when num_scenes >= 2."""
+    scenarios: list[str] = field(default_factory=lambda: list(SCENARIOS))
+    """Ego behaviours to draw from; scenes cycle through a seeded permutation of them."""
+    num_vehicles: int = 10
+    """Other vehicles per scene (cars, trucks, buses; fewer when placement finds no free spot)."""
+    parked_fraction: float = 0.4
+    """Fraction of the other vehicles parked at the kerb."""
+    num_pedestrians: int = 6
+    """Pedestrians per scene on the sidewalks (plus crossing ones in the ``stop`` scenario)."""
+    max_depth_m: float = 150.0
+    """Rays travel at most this far; farther surfaces count as sky (depth 0)."""
+    box_range_m: float = 60.0
+    """Vehicles and pedestrians within this ego-xy distance get a 3D box."""
+    min_box_pixels: int = 12
+    """Visible pixels an object needs in a camera to get a 2D box there."""
+    lidar_beams: int = 32
+    """LiDAR beams (HDL-32E-like elevations from -30.67 to +10.67 degrees)."""
+    lidar_azimuth_steps: int = 360
+    """LiDAR azimuth samples per sweep."""
+    lidar_range_m: float = 70.0
+    """LiDAR maximum range; farther returns are dropped."""
+    fog_visibility_m: float = 40.0
+    """Fog: distance at which the scene keeps exp(-1) of its contrast."""
+    qa_per_task: int = 4
+    """At most this many QA of each of rdp, vg2d and vg3d per frame."""
+    plan_horizon_s: float = 2.0
+    """Planning QA look this far ahead; frames without that much future get none."""
+    num_workers: int = 0
+    """Processes rendering scenes in parallel: 0 = one per CPU (at most one per scene), 1 = in-process."""
+
+
+def _check(ok: bool, key: str, rule: str, value: Any) -> None:
+    if not ok:
+        raise DataError(f"data.{key} must be {rule}, got {value!r}")
+
+
+def coerce_config(cfg: Any) -> SynthConfig:
+    """A ``SynthConfig`` from itself, a Hydra ``DictConfig`` or a mapping (lists become plain lists)."""
+    if isinstance(cfg, SynthConfig):
+        return cfg
+    get = cfg.get if hasattr(cfg, "get") else (lambda k, d: getattr(cfg, k, d))
+    kwargs = {}
+    for f in fields(SynthConfig):
+        if f.name == "root":  # an interpolation of the caller's config; build() gets the root explicitly
+            continue
+        value = get(f.name, None)
+        if value is None:
+            continue
+        kwargs[f.name] = list(value) if f.name in ("weathers", "scenarios") else value
+    return SynthConfig(**kwargs)
+
+
+def validate(cfg: SynthConfig) -> None:
+    """Reject values the generator cannot honour; messages name the ``data.<key>``."""
+    for key in ("num_scenes", "num_frames"):
+        _check(isinstance(getattr(cfg, key), int) and getattr(cfg, key) >= 1, key, ">= 1", getattr(cfg, key))
+    for key in ("width", "height"):
+        _check(isinstance(getattr(cfg, key), int) and getattr(cfg, key) >= 16, key, ">= 16 pixels", getattr(cfg, key))
+    _check(cfg.frame_rate_hz > 0, "frame_rate_hz", "> 0", cfg.frame_rate_hz)
+    _check(0 <= cfg.val_fraction < 1, "val_fraction", "in [0, 1)", cfg.val_fraction)
+    _check(0 <= cfg.parked_fraction <= 1, "parked_fraction", "in [0, 1]", cfg.parked_fraction)
+    for key in ("num_vehicles", "num_pedestrians", "qa_per_task", "num_workers"):
+        _check(getattr(cfg, key) >= 0, key, ">= 0", getattr(cfg, key))
+    for key in ("min_box_pixels", "lidar_beams", "lidar_azimuth_steps"):
+        _check(getattr(cfg, key) >= 1, key, ">= 1", getattr(cfg, key))
+    for key in ("box_range_m", "lidar_range_m", "fog_visibility_m", "plan_horizon_s"):
+        _check(getattr(cfg, key) > 0, key, "> 0", getattr(cfg, key))
+    # Depth PNGs hold at most 65535 / 256 m.
+    _check(0 < cfg.max_depth_m <= 255.0, "max_depth_m", "in (0, 255] (uint16 depth PNG range)", cfg.max_depth_m)
+    unknown = [w for w in cfg.weathers if w not in WEATHERS]
+    _check(not unknown, "weathers", f"a subset of {list(WEATHERS)}", cfg.weathers)
+    _check("clear" in cfg.weathers, "weathers", "a list that includes 'clear' (the images/ folder)", cfg.weathers)
+    _check(len(set(cfg.weathers)) == len(cfg.weathers), "weathers", "a list without repeats", cfg.weathers)
+    bad = [s for s in cfg.scenarios if s not in SCENARIOS]
+    _check(bool(cfg.scenarios) and not bad, "scenarios", f"a non-empty subset of {list(SCENARIOS)}", cfg.scenarios)

@@ -1,0 +1,368 @@
+"""Content-addressed stage cache (DESIGN §4): a stage's output directory, keyed by the sha256 of its inputs.
+
+Layout under the cache root (any ``pyarrow.fs`` URI, or a plain local path)::
+
+    <root>/<stage>/<key[:2]>/<key>/MANIFEST.json    written last: key, config, upstream keys, sha256+size per file
+    <root>/<stage>/<key[:2]>/<key>/<files...>       the stage's output, paths as in the source directory
+    <root>/<stage>/<key[:2]>/.tmp-<key12>-<uuid>    a publish in progress, renamed onto <key> once complete
+    <root>/<stage>/<key[:2]>/.trash-<key12>-<uuid>  a corrupt entry moved aside, being deleted
+
+Written here because no maintained library publishes verified directories atomically through ``pyarrow.fs``.
+Object stores (S3, GCS, Azure) cannot rename directories, so there (and on any filesystem not known to rename
+atomically) files are uploaded in place and the manifest, one atomic PUT, is what makes an entry visible; a
+concurrent writer's interleaved bytes fail verification and are recomputed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import math
+import os
+import re
+import shutil
+import time
+import uuid
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import pyarrow.fs as pafs
+
+log = logging.getLogger(__name__)
+
+MANIFEST = "MANIFEST.json"
+CHUNK = 1 << 20
+# pyarrow filesystems whose move() is an atomic directory rename that fails on a non-empty destination.
+RENAMES_DIRS = frozenset({"local", "mock"})
+_STAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+_KEY_RE = re.compile(r"[0-9a-f]{64}")
+_ABSENT = pafs.FileType.NotFound
+
+
+def _plain(obj: Any, path: str) -> Any:
+    """``obj`` as JSON-ready containers (tuples become lists); a TypeError names the offending path."""
+    where = path or "<root>"
+    if obj is None or isinstance(obj, str | bool | int):
+        return obj
+    if isinstance(obj, float):
+        if not math.isfinite(obj):
+            raise TypeError(f"{where}: non-finite float {obj!r} is not allowed")
+        return obj
+    if isinstance(obj, Mapping):
+        for k in obj:
+            if not isinstance(k, str):
+                raise TypeError(f"{where}: key {k!r} has unsupported type {type(k).__name__} (keys must be str)")
+        return {k: _plain(v, f"{path}.{k}" if path else k) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_plain(v, f"{where}[{i}]") for i, v in enumerate(obj)]
+    raise TypeError(f"{where}: unsupported type {type(obj).__name__}")
+
+
+def canonical_json(obj: Any) -> str:
+    """Sorted keys, no whitespace, floats by ``repr`` (0.1 stays 0.1); rejects NaN/Inf and non-JSON types."""
+    return json.dumps(_plain(obj, ""), sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+
+
+def cache_key(
+    stage: str,
+    version: str,
+    config: Mapping,
+    upstream: Mapping[str, str],
+    data_fingerprint: str,
+    scene: str | None = None,
+) -> str:
+    """sha256 hex of the canonical JSON of everything a stage's output depends on (DESIGN §4)."""
+    payload = {"stage": stage, "version": version, "config": config, "upstream": dict(upstream)}
+    payload |= {"data": data_fingerprint, "scene": scene}
+    return hashlib.sha256(canonical_json(payload).encode()).hexdigest()
+
+
+@dataclass(frozen=True)
+class FileEntry:
+    path: str
+    """Path relative to the entry directory, posix separators."""
+    sha256: str
+    size: int
+
+
+@dataclass(frozen=True)
+class Manifest:
+    key: str
+    stage: str
+    version: str
+    config: dict
+    upstream: dict[str, str]
+    data_fingerprint: str
+    scene: str | None
+    files: tuple[FileEntry, ...]
+    run_id: str | None
+    """The MLflow run that produced the entry."""
+    created_at: float
+    extra: dict
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), sort_keys=True, indent=1, allow_nan=False)
+
+    @classmethod
+    def from_json(cls, text: str) -> Manifest:
+        d = json.loads(text)
+        names = {f.name for f in fields(cls)}
+        if not isinstance(d, dict) or set(d) != names:
+            raise ValueError(f"expected fields {sorted(names)}")
+        files = tuple(FileEntry(str(f["path"]), str(f["sha256"]), int(f["size"])) for f in d.pop("files"))
+        return cls(files=files, **d)
+
+
+class CacheError(Exception):
+    """A cache entry that cannot be published or read; the message names stage, key prefix and file."""
+
+
+def _sha256(stream: Any, sink: Any = None) -> tuple[str, int]:
+    h, size = hashlib.sha256(), 0
+    while chunk := stream.read(CHUNK):
+        h.update(chunk)
+        size += len(chunk)
+        if sink is not None:
+            sink.write(chunk)
+    return h.hexdigest(), size
+
+
+def _scan(stage: str, key: str, src: Path) -> list[tuple[str, Path]]:
+    """``(relative posix path, file)`` for every file under ``src``; symlinks and special files are refused."""
+    where = f"stage {stage} key {key[:12]}"
+    if not src.is_dir():
+        raise CacheError(f"{where}: {src}: source is not a directory")
+    out = []
+    for dirpath, dirnames, filenames in os.walk(src):
+        for name in dirnames + filenames:
+            p = Path(dirpath, name)
+            rel = p.relative_to(src).as_posix()
+            if p.is_symlink():  # it could point outside src_dir, and the entry must hold the bytes itself
+                raise CacheError(f"{where}: {rel}: symlinks are refused")
+            if name in filenames and not p.is_file():
+                raise CacheError(f"{where}: {rel}: not a regular file")
+            if name in filenames:
+                out.append((rel, p))
+    if any(rel == MANIFEST for rel, _ in out):
+        raise CacheError(f"{where}: {MANIFEST}: name is reserved for the cache manifest")
+    return sorted(out)
+
+
+class Cache:
+    """Stage outputs under a ``pyarrow.fs`` root; see the module docstring for the layout."""
+
+    def __init__(self, uri: str | os.PathLike):
+        uri = str(uri)
+        if "://" in uri:
+            self.fs, root = pafs.FileSystem.from_uri(uri)
+            self._scheme = uri.split("://", 1)[0] + "://"
+        else:
+            self.fs, root, self._scheme = pafs.LocalFileSystem(), os.path.abspath(uri), ""
+        self.root = root.rstrip("/")
+        self.local = isinstance(self.fs, pafs.LocalFileSystem)
+        self.atomic_dirs = self.fs.type_name in RENAMES_DIRS
+        self.last_invalid: list[tuple[str, str, str]] = []
+        """``(stage, key, reason)`` of every bad entry the latest ``lookup`` found and moved aside."""
+
+    def _dir(self, stage: str, key: str) -> str:
+        if not _STAGE_RE.fullmatch(stage):
+            raise ValueError(f"stage name {stage!r}: use letters, digits, '_', '.', '-'")
+        if not _KEY_RE.fullmatch(key):
+            raise ValueError(f"stage {stage}: cache key {key!r} is not a sha256 hex digest")
+        return f"{self.root}/{stage}/{key[:2]}/{key}"
+
+    def entry_uri(self, stage: str, key: str) -> str:
+        """``<root>/<stage>/<key[:2]>/<key>`` in the scheme the cache was opened with."""
+        return self._scheme + self._dir(stage, key)
+
+    def _load(self, stage: str, key: str, d: str) -> tuple[Manifest | None, str | None]:
+        """(manifest, None) when complete; (None, reason) when present but bad; (None, None) when absent."""
+        try:
+            with self.fs.open_input_stream(f"{d}/{MANIFEST}") as f:
+                text = f.read().decode()
+        except FileNotFoundError:
+            # Without directory renames an upload may be in progress: no manifest simply means absent.
+            if self.atomic_dirs and self.fs.get_file_info(d).type != _ABSENT:
+                return None, f"{MANIFEST}: missing (incomplete entry)"
+            return None, None
+        try:
+            m = Manifest.from_json(text)
+        except (ValueError, KeyError, TypeError) as e:
+            return None, f"{MANIFEST}: unreadable ({e})"
+        if (m.stage, m.key) != (stage, key):
+            return None, f"{MANIFEST}: names {m.stage}/{m.key[:12]}, expected {stage}/{key[:12]}"
+        return m, None
+
+    def _verify(self, m: Manifest, d: str) -> str | None:
+        infos = self.fs.get_file_info(pafs.FileSelector(d, recursive=True))
+        found = {i.path[len(d) + 1 :]: i.size for i in infos if i.type == pafs.FileType.File}
+        found.pop(MANIFEST, None)
+        for fe in m.files:
+            if fe.path not in found:
+                return f"{fe.path}: missing"
+            if (size := found.pop(fe.path)) != fe.size:
+                return f"{fe.path}: size {size} != {fe.size} in the manifest"
+        if found:
+            return f"{sorted(found)[0]}: not listed in the manifest"
+        for fe in m.files:
+            try:
+                with self.fs.open_input_stream(f"{d}/{fe.path}") as f:
+                    digest = _sha256(f)[0]
+            except FileNotFoundError:
+                return f"{fe.path}: missing"
+            if digest != fe.sha256:
+                return f"{fe.path}: sha256 {digest[:12]} != {fe.sha256[:12]} in the manifest"
+        return None
+
+    def _discard(self, d: str, key: str) -> None:
+        """Move an entry aside, then delete it; a concurrent process may have removed it already."""
+        trash = d
+        with contextlib.suppress(FileNotFoundError):
+            if self.atomic_dirs:
+                trash = f"{d.rsplit('/', 1)[0]}/.trash-{key[:12]}-{uuid.uuid4().hex}"
+                self.fs.move(d, trash)
+            else:
+                self.fs.delete_file(f"{d}/{MANIFEST}")  # the entry vanishes at once, like a rename
+        with contextlib.suppress(FileNotFoundError):
+            self.fs.delete_dir(trash)
+
+    def lookup(self, stage: str, key: str, verify: bool = True) -> Manifest | None:
+        """The entry's manifest, or None when absent; a bad entry is reported, moved aside and treated as absent."""
+        self.last_invalid = []
+        d = self._dir(stage, key)
+        m, bad = self._load(stage, key, d)
+        if m is not None and verify:
+            bad = self._verify(m, d)
+        if bad is None:
+            return m
+        self.last_invalid.append((stage, key, bad))
+        log.warning("cache %s/%s: %s; moving the entry aside to recompute (%s)", stage, key[:12], bad, self._scheme + d)
+        self._discard(d, key)
+        return None
+
+    def _write_manifest(self, d: str, m: Manifest) -> None:
+        with self.fs.open_output_stream(f"{d}/{MANIFEST}") as f:
+            f.write(m.to_json().encode())
+
+    def _upload(self, src: Path, dst: str) -> tuple[str, int]:
+        self.fs.create_dir(dst.rsplit("/", 1)[0], recursive=True)
+        with open(src, "rb") as fin, self.fs.open_output_stream(dst) as fout:
+            return _sha256(fin, fout)
+
+    def _move(self, src: str, dst: str) -> bool:
+        """Rename ``src`` onto ``dst``; False when another writer's entry is there."""
+        # LocalFileSystem.move is rename(2): ENOTEMPTY on a non-empty destination, so it never merges into or
+        # replaces a published entry (it always holds MANIFEST.json); only an empty leftover dir is replaced.
+        try:
+            self.fs.move(src, dst)
+            return True
+        except OSError:
+            if self.fs.get_file_info(dst).type == _ABSENT:
+                raise
+            return False
+
+    def publish(
+        self,
+        stage: str,
+        key: str,
+        src_dir: Path,
+        *,
+        config: dict,
+        upstream: dict[str, str],
+        data_fingerprint: str,
+        version: str,
+        scene: str | None = None,
+        run_id: str | None = None,
+        extra: dict | None = None,
+    ) -> Manifest:
+        """Copy ``src_dir`` into the entry for ``key`` atomically; if another writer won, return its manifest."""
+        d = self._dir(stage, key)
+        expected = cache_key(stage, version, config, upstream, data_fingerprint, scene)
+        if key != expected:
+            raise CacheError(f"stage {stage} key {key[:12]}: != cache_key() of the given inputs ({expected[:12]})")
+        files = _scan(stage, key, Path(src_dir))
+        if not self.atomic_dirs and (theirs := self.lookup(stage, key)) is not None:
+            return theirs
+        parent = d.rsplit("/", 1)[0]
+        work = f"{parent}/.tmp-{key[:12]}-{uuid.uuid4().hex}" if self.atomic_dirs else d
+        self.fs.create_dir(work, recursive=True)
+        try:
+            entries = tuple(FileEntry(rel, *self._upload(src, f"{work}/{rel}")) for rel, src in files)
+            cfg, ext = json.loads(canonical_json(config)), json.loads(canonical_json(extra or {}))
+            m = Manifest(
+                key, stage, version, cfg, dict(upstream), data_fingerprint, scene, entries, run_id, time.time(), ext
+            )
+            self._write_manifest(work, m)  # last: only now is the entry complete
+            if not self.atomic_dirs:
+                return m
+            for _ in range(3):
+                if (theirs := self.lookup(stage, key)) is not None:
+                    return theirs
+                if self._move(work, d):
+                    return m
+            raise CacheError(f"stage {stage} key {key[:12]}: {self._scheme + d}: still contended after 3 attempts")
+        finally:
+            if self.atomic_dirs:
+                with contextlib.suppress(FileNotFoundError):
+                    self.fs.delete_dir(work)
+
+    def materialize(self, manifest: Manifest) -> Path:
+        """A local directory with the entry's files: the entry itself locally, else a verified download into
+        ``$GDWM_LOCAL_CACHE`` (default ``~/.cache/gdwm``) under ``<stage>/<key>``."""
+        m, d = manifest, self._dir(manifest.stage, manifest.key)
+        if self.local:
+            return Path(d)
+        dest = Path(os.environ.get("GDWM_LOCAL_CACHE") or Path.home() / ".cache" / "gdwm", m.stage, m.key)
+        if (dest / MANIFEST).is_file() and (dest / MANIFEST).read_text() == m.to_json():
+            return dest
+        tmp = dest.parent / f".tmp-{m.key[:12]}-{uuid.uuid4().hex}"
+        try:
+            tmp.mkdir(parents=True)
+            for fe in m.files:
+                (tmp / fe.path).parent.mkdir(parents=True, exist_ok=True)
+                with self.fs.open_input_stream(f"{d}/{fe.path}") as fin, open(tmp / fe.path, "wb") as fout:
+                    if (digest := _sha256(fin, fout)[0]) != fe.sha256:
+                        raise CacheError(
+                            f"stage {m.stage} key {m.key[:12]}: {fe.path}: downloaded sha256 "
+                            f"{digest[:12]} != {fe.sha256[:12]} in the manifest"
+                        )
+            (tmp / MANIFEST).write_text(m.to_json())
+            if dest.exists():  # a copy of an older publish of this key
+                stale = dest.parent / f".trash-{m.key[:12]}-{uuid.uuid4().hex}"
+                os.rename(dest, stale)
+                shutil.rmtree(stale)
+            try:
+                os.rename(tmp, dest)
+            except OSError:
+                if not (dest / MANIFEST).is_file():  # a concurrent download won: use that one
+                    raise
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        return dest
+
+    def _ls(self, path: str) -> list[pafs.FileInfo]:
+        infos = self.fs.get_file_info(pafs.FileSelector(path, allow_not_found=True))
+        return [i for i in infos if i.type == pafs.FileType.Directory and not i.base_name.startswith(".")]
+
+    def entries(self, stage: str | None = None) -> list[Manifest]:
+        """Every complete manifest (not verified), of one stage or all, ordered by stage then creation time."""
+        stages = [stage] if stage else [i.base_name for i in self._ls(self.root)]
+        out = []
+        for s in stages:
+            for shard in self._ls(f"{self.root}/{s}"):
+                for e in self._ls(shard.path):
+                    if (m := self._load(s, e.base_name, e.path)[0]) is not None:
+                        out.append(m)
+        return sorted(out, key=lambda m: (m.stage, m.created_at, m.key))
+
+    def invalidate(self, stage: str, key: str) -> bool:
+        """Remove an entry; False when there was none."""
+        d = self._dir(stage, key)
+        if self.fs.get_file_info(d).type == _ABSENT:
+            return False
+        self._discard(d, key)
+        return True

@@ -1,0 +1,331 @@
+"""Stages as Ray tasks whose arguments are upstream results; per-scene stages in actor pools.
+
+Each stage task computes its cache key from its upstream results' keys, returns at once on a
+cache hit (no MLflow run), else runs the stage under one MLflow run (one per cache key: a
+killed attempt's run is reopened, never duplicated), publishes atomically and returns. A stage
+task that fails raises ``StageFailed``; Ray then never starts its descendants.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import traceback
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import ray
+
+from gdwm.cache import Cache, cache_key
+from gdwm.stage import StageContext, StageDef, UpstreamOutput
+from gdwm.tracking import Tracker, call
+
+TAG_STAGE, TAG_KEY, TAG_VERSION, TAG_SCENES = "gdwm.stage", "gdwm.cache_key", "gdwm.version", "gdwm.scenes"
+
+
+class StageFailed(Exception):
+    """A stage (or some of its scenes) raised; the message names the stage, the scenes and the error."""
+
+    def __init__(self, stage: str, errors: Mapping[str | None, str]):
+        self.stage = stage
+        self.errors = dict(errors)
+        scenes = [s for s in self.errors if s is not None]
+        where = f"stage '{stage}'" + (f" scene(s) {scenes}" if scenes else "")
+        last = next(iter(self.errors.values())).strip().splitlines()[-1] if self.errors else ""
+        super().__init__(f"{where} failed: {last}")
+
+    def __reduce__(self):
+        return (StageFailed, (self.stage, self.errors))
+
+
+@dataclass(frozen=True)
+class RunEnv:
+    """Everything a stage task needs besides its own definition; plain, picklable."""
+
+    cache_uri: str
+    data_root: str
+    data_fingerprint: str
+    scenes: tuple[str, ...]
+    checkpoint_root: str
+    sink: Any
+    parent_run_id: str | None
+    progress: Any
+    resources: Mapping[str, Mapping[str, float]]
+    on_scene_error: str = "fail"
+    max_retries: int = 3
+    seed: int = 0
+    train_settings: Mapping[str, Any] = field(default_factory=dict)
+    run_tags: Mapping[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StageResult:
+    stage: str
+    key: str
+    cached: bool
+    run_id: str | None
+    path: str | None = None
+    """Local directory of the entry (non-per-scene stages)."""
+    scenes: Mapping[str, tuple[str, str]] = field(default_factory=dict)
+    """Per-scene stages: scene -> (key, local dir) of every scene that has an entry."""
+    failed: Mapping[str, str] = field(default_factory=dict)
+    """Per-scene stages with on_scene_error=skip: scene -> traceback of the scenes left out."""
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+
+def stage_key(sd: StageDef, subset: Mapping, upstream: Mapping[str, str], env: RunEnv, scene: str | None = None) -> str:
+    return cache_key(sd.name, sd.version, dict(subset), dict(upstream), env.data_fingerprint, scene)
+
+
+def aggregate_key(sd: StageDef, subset: Mapping, scene_keys: Mapping[str, str], env: RunEnv) -> str:
+    """A per-scene stage's key as seen downstream: it changes with any scene's key or the set of scenes."""
+    return cache_key(
+        sd.name, sd.version, dict(subset), {f"scene:{s}": k for s, k in scene_keys.items()}, env.data_fingerprint
+    )
+
+
+def upstream_keys(results: tuple[StageResult, ...], scene: str | None) -> dict[str, str]:
+    """Keys this stage depends on; a per-scene stage depends on the same scene of a per-scene upstream."""
+    out = {}
+    for r in results:
+        out[r.stage] = r.scenes[scene][0] if (scene is not None and r.scenes) else r.key
+    return out
+
+
+def upstream_views(results: tuple[StageResult, ...]) -> dict[str, UpstreamOutput]:
+    return {
+        r.stage: UpstreamOutput(
+            r.stage,
+            r.key,
+            Path(r.path) if r.path else None,
+            dict(r.extra),
+            {s: Path(p) for s, (_, p) in r.scenes.items()},
+        )
+        for r in results
+    }
+
+
+def _progress(env: RunEnv, stage: str, scene: str | None, status: str, **kw) -> None:
+    if env.progress is not None:
+        env.progress.status.remote(stage, scene, status, **kw)
+
+
+def _open_stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping) -> str:
+    """The MLflow run for this key: reopened if an earlier attempt left one, else created under the parent."""
+    found = call(env.sink, "search_runs", f"tags.`{TAG_KEY}` = '{key}' and tags.`{TAG_STAGE}` = '{sd.name}'")
+    if found:
+        run_id = found[0]["run_id"]
+        call(env.sink, "reopen_run", run_id)
+        call(env.sink, "set_tags", run_id, {"gdwm.resumed": "true"})
+        return run_id
+    tags = {TAG_STAGE: sd.name, TAG_KEY: key, TAG_VERSION: sd.version, "gdwm.kind": "stage", **env.run_tags}
+    run_id = call(env.sink, "create_run", f"{sd.name}-{key[:8]}", tags, env.parent_run_id)
+    call(env.sink, "log_params", run_id, dict(subset))
+    return run_id
+
+
+def _context(sd: StageDef, key: str, subset, env: RunEnv, results, out_dir: Path, tracker, scene=None, state=None):
+    return StageContext(
+        name=sd.name,
+        key=key,
+        config=dict(subset),
+        out_dir=out_dir,
+        upstream=upstream_views(results),
+        data_root=Path(env.data_root),
+        data_fingerprint=env.data_fingerprint,
+        tracker=tracker,
+        checkpoint_dir=Path(env.checkpoint_root) / sd.name / key,
+        resources=dict(env.resources.get(sd.resources, {})),
+        scene=scene,
+        state=state,
+        progress_sink=env.progress,
+        seed=env.seed,
+        train_settings=dict(env.train_settings),
+    )
+
+
+def _execute(sd, key, subset, env, results, tracker, scene=None, state=None) -> tuple[str, dict]:
+    """Run the stage function into a temp dir and publish it; returns (local entry dir, manifest extra)."""
+    cache = Cache(env.cache_uri)
+    with tempfile.TemporaryDirectory(prefix=f"gdwm-{sd.name}-") as tmp:
+        out = Path(tmp) / "out"
+        out.mkdir()
+        ctx = _context(sd, key, subset, env, results, out, tracker, scene, state)
+        extra = sd.fn(ctx) or {}
+        if not isinstance(extra, dict):
+            raise TypeError(f"stage '{sd.name}' returned {type(extra).__name__}; return None or a JSON-able dict")
+        tracker.flush()
+        m = cache.publish(
+            sd.name,
+            key,
+            out,
+            config=dict(subset),
+            upstream=upstream_keys(results, scene),
+            data_fingerprint=env.data_fingerprint,
+            version=sd.version,
+            scene=scene,
+            run_id=tracker.run_id,
+            extra=extra,
+        )
+        return str(cache.materialize(m)), dict(m.extra)
+
+
+class ScopedTracker(Tracker):
+    """A per-scene view of the stage run: metric names get the scene as a prefix."""
+
+    def __init__(self, sink, run_id: str, prefix: str):
+        super().__init__(sink, run_id)
+        self.prefix = prefix
+
+    def __getstate__(self):
+        return {**super().__getstate__(), "prefix": self.prefix}
+
+    def __setstate__(self, state):
+        self.__init__(state["sink"], state["run_id"], state["prefix"])
+
+    def log_metrics(self, metrics, step=None):
+        super().log_metrics({f"{self.prefix}{k}": v for k, v in metrics.items()}, step)
+
+
+@ray.remote
+def run_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResult) -> StageResult:
+    """One whole-dataset stage (``per_scene=False``)."""
+    cache = Cache(env.cache_uri)
+    key = stage_key(sd, subset, upstream_keys(results, None), env)
+    hit = cache.lookup(sd.name, key)
+    if hit is not None:
+        _progress(env, sd.name, None, "cached", key=key, run_id=hit.run_id or "")
+        return StageResult(sd.name, key, True, hit.run_id, str(cache.materialize(hit)), extra=dict(hit.extra))
+    run_id = _open_stage_run(env, sd, key, subset)
+    _progress(env, sd.name, None, "running", key=key, run_id=run_id)
+    tracker = Tracker(env.sink, run_id)
+    try:
+        path, extra = _execute(sd, key, subset, env, results, tracker)
+    except Exception as e:
+        tb = traceback.format_exc()
+        _end_failed(env, run_id, tb)
+        _progress(env, sd.name, None, "failed", message=str(e)[:200])
+        raise StageFailed(sd.name, {None: tb}) from None
+    call(env.sink, "end_run", run_id, "FINISHED")
+    _progress(env, sd.name, None, "done")
+    return StageResult(sd.name, key, False, run_id, path, extra=extra)
+
+
+def _end_failed(env: RunEnv, run_id: str, text: str) -> None:
+    call(env.sink, "log_text", run_id, text, "error.txt")
+    call(env.sink, "end_run", run_id, "FAILED")
+
+
+class SceneWorker:
+    """Holds a per-scene stage's heavy state (``setup``) and processes scenes one at a time."""
+
+    def __init__(self, sd: StageDef, subset: dict):
+        self.sd = sd
+        self.state = sd.setup(subset) if sd.setup is not None else None
+
+    def process(self, scene: str, key: str, subset: dict, env: RunEnv, run_id: str, *results: StageResult):
+        _progress(env, self.sd.name, scene, "running", key=key)
+        tracker = ScopedTracker(env.sink, run_id, f"{scene}/")
+        path, _ = _execute(self.sd, key, subset, env, results, tracker, scene, self.state)
+        _progress(env, self.sd.name, scene, "done", key=key)
+        return path
+
+
+@ray.remote(num_cpus=0)
+def run_scene_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResult) -> StageResult:
+    """A per-scene stage: cache per scene, misses go to a pool of actors that load heavy state once."""
+    cache = Cache(env.cache_uri)
+    upstream_failed = {s for r in results for s in r.failed}
+    scenes = [s for s in env.scenes if s not in upstream_failed]
+    keys = {s: stage_key(sd, subset, upstream_keys(results, s), env, scene=s) for s in scenes}
+    done: dict[str, tuple[str, str]] = {}
+    misses = []
+    for s in scenes:
+        hit = cache.lookup(sd.name, keys[s])
+        if hit is None:
+            misses.append(s)
+        else:
+            done[s] = (keys[s], str(cache.materialize(hit)))
+            _progress(env, sd.name, s, "cached", key=keys[s])
+    agg = aggregate_key(sd, subset, keys, env)
+    if not misses:
+        _progress(env, sd.name, None, "cached", key=agg)
+        return StageResult(sd.name, agg, True, None, scenes=done)
+    run_id = _open_stage_run(env, sd, agg, subset)
+    call(env.sink, "set_tags", run_id, {TAG_SCENES: ",".join(misses)})
+    _progress(env, sd.name, None, "running", key=agg, run_id=run_id)
+    errors = _run_pool(sd, subset, env, run_id, results, misses, keys, done)
+    for s in upstream_failed:
+        _progress(env, sd.name, s, "blocked")
+    if errors and env.on_scene_error == "fail":
+        _end_failed(env, run_id, "\n\n".join(f"== {s} ==\n{tb}" for s, tb in errors.items()))
+        _progress(env, sd.name, None, "failed", message=f"{len(errors)} scene(s) failed")
+        raise StageFailed(sd.name, errors)
+    if errors:
+        call(env.sink, "log_text", run_id, "\n\n".join(f"== {s} ==\n{tb}" for s, tb in errors.items()), "skipped.txt")
+    ok_keys = {s: keys[s] for s in done}
+    agg = aggregate_key(sd, subset, ok_keys, env)
+    call(env.sink, "end_run", run_id, "FINISHED")
+    _progress(env, sd.name, None, "done", key=agg, message=f"{len(errors)} skipped" if errors else "")
+    return StageResult(sd.name, agg, False, run_id, scenes=done, failed={**errors})
+
+
+def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, done) -> dict[str, str]:
+    res = env.resources.get(sd.resources, {})
+    n = max(1, min(len(misses), int(res.get("num_workers", 1)) or 1))
+    actor_cls = ray.remote(SceneWorker).options(
+        num_cpus=float(res.get("num_cpus", 1)),
+        num_gpus=float(res.get("num_gpus", 0)),
+        max_restarts=env.max_retries,
+        max_task_retries=env.max_retries,
+    )
+    actors = [actor_cls.remote(sd, subset) for _ in range(n)]
+    queue = list(misses)
+    running: dict[ray.ObjectRef, tuple[str, Any]] = {}
+    errors: dict[str, str] = {}
+
+    def submit(actor) -> None:
+        s = queue.pop(0)
+        ref = actor.process.remote(s, keys[s], subset, env, run_id, *results)
+        running[ref] = (s, actor)
+
+    try:
+        for a in actors:
+            if queue:
+                submit(a)
+        while running:
+            [ref], _ = ray.wait(list(running), num_returns=1)
+            s, actor = running.pop(ref)
+            try:
+                done[s] = (keys[s], ray.get(ref))
+            except ray.exceptions.RayTaskError as e:
+                errors[s] = _user_traceback(e)
+                _progress(env, sd.name, s, "failed", message=str(e.cause)[:200] if e.cause else "")
+            if queue:
+                submit(actor)
+    finally:
+        for a in actors:
+            ray.kill(a)
+    return errors
+
+
+def _user_traceback(e: ray.exceptions.RayTaskError) -> str:
+    cause = e.cause if isinstance(e.cause, BaseException) else None
+    if cause is not None:
+        return "".join(traceback.format_exception(cause))
+    return str(e)
+
+
+def task_options(sd: StageDef, env: RunEnv) -> dict:
+    """Ray options of a stage's coordinating task; resources come from the cluster config only."""
+    res = env.resources.get(sd.resources, {})
+    if sd.per_scene:
+        return {}
+    if sd.resources == "train" and int(res.get("num_workers", 1)) > 0:
+        return {"num_cpus": 0, "max_retries": env.max_retries}  # the Ray Train workers hold the resources
+    return {
+        "num_cpus": float(res.get("num_cpus", 1)),
+        "num_gpus": float(res.get("num_gpus", 0)),
+        "max_retries": env.max_retries,
+    }

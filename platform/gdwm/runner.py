@@ -1,0 +1,278 @@
+"""``gdwm run``: validate, plan, execute the DAG on Ray, track it in MLflow, summarise."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import ray
+from hydra.utils import get_method
+from omegaconf import DictConfig, OmegaConf
+from rich.console import Console
+from rich.live import Live
+from rich.table import Table
+
+from gdwm.cache import Cache
+from gdwm.dag import Pipeline, load_pipeline
+from gdwm.executor import (
+    RunEnv,
+    StageFailed,
+    StageResult,
+    aggregate_key,
+    run_scene_stage,
+    run_stage,
+    stage_key,
+    task_options,
+    upstream_keys,
+)
+from gdwm.progress import ProgressActor, render
+from gdwm.tracking import RunGuard, call, open_tracking
+
+console = Console(highlight=False)
+
+
+class RunError(Exception):
+    """A run that could not start (exit 1), e.g. a dataset that is absent and cannot be generated."""
+
+
+@dataclass
+class PlanRow:
+    stage: str
+    scene: str | None
+    key: str
+    status: str  # cached | to run | blocked
+    resources: str
+
+
+@dataclass
+class RunSummary:
+    results: dict[str, StageResult] = field(default_factory=dict)
+    failed: dict[str, str] = field(default_factory=dict)
+    blocked: list[str] = field(default_factory=list)
+    parent_run_id: str | None = None
+    wall: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed and not self.blocked
+
+
+def subset(cfg: DictConfig, keys: tuple[str, ...]) -> dict:
+    return {k: OmegaConf.to_container(OmegaConf.select(cfg, k), resolve=True) for k in keys}
+
+
+def read_dataset_meta(root: Path) -> dict:
+    meta = root / "dataset.json"
+    if not meta.is_file():
+        raise RunError(f"dataset at {root} is absent or incomplete (no dataset.json)")
+    return json.loads(meta.read_text())
+
+
+def ensure_data(cfg: DictConfig) -> dict:
+    """The dataset's meta; a dataset that needs no source (synthetic) is generated first if absent."""
+    root = Path(cfg.data.root)
+    if not (root / "dataset.json").is_file():
+        if cfg.source is None and "synth" in cfg.data.builder:
+            console.print(f"generating {cfg.data.name} at {root} ...")
+            get_method(cfg.data.builder)(cfg.data, root=root, source=None, overwrite=cfg.overwrite)
+        else:
+            raise RunError(
+                f"dataset '{cfg.data.name}' not found at {root}: build it first "
+                f"(gdwm data import-gaussiandwm / convert-nuscenes source=DIR data={cfg.data.name})"
+            )
+    return read_dataset_meta(root)
+
+
+def _plan_result(sd, sub, env: RunEnv, ups: tuple[StageResult, ...], cache: Cache, rows: list[PlanRow]) -> StageResult:
+    """Predict one stage's keys and cache status, assuming every upstream scene succeeds."""
+    if sd.per_scene:
+        keys = {s: stage_key(sd, sub, upstream_keys(ups, s), env, scene=s) for s in env.scenes}
+        for s, k in keys.items():
+            hit = cache.lookup(sd.name, k, verify=False) is not None
+            rows.append(PlanRow(sd.name, s, k, "cached" if hit else "to run", sd.resources))
+        return StageResult(
+            sd.name, aggregate_key(sd, sub, keys, env), False, None, scenes={s: (k, "") for s, k in keys.items()}
+        )
+    key = stage_key(sd, sub, upstream_keys(ups, None), env)
+    hit = cache.lookup(sd.name, key, verify=False) is not None
+    rows.append(PlanRow(sd.name, None, key, "cached" if hit else "to run", sd.resources))
+    return StageResult(sd.name, key, hit, None)
+
+
+def plan(pipe: Pipeline, order: list[str], cfg: DictConfig, env: RunEnv) -> list[PlanRow]:
+    """Keys depend on upstream keys, not outputs, so the whole DAG's keys are known before anything runs."""
+    cache = Cache(env.cache_uri)
+    rows: list[PlanRow] = []
+    predicted: dict[str, StageResult] = {}
+    for name in order:
+        sd = pipe.stages[name]
+        ups = tuple(predicted[u] for u in sd.upstream)
+        predicted[name] = _plan_result(sd, subset(cfg, sd.config), env, ups, cache, rows)
+    return rows
+
+
+def print_plan(rows: list[PlanRow], env: RunEnv) -> None:
+    t = Table(title="plan", header_style="bold")
+    for col in ("stage", "scene", "status", "key", "resources"):
+        t.add_column(col)
+    for r in rows:
+        res = env.resources.get(r.resources, {})
+        cpus, gpus, n = res.get("num_cpus", 0), res.get("num_gpus", 0), res.get("num_workers", 1)
+        desc = f"{r.resources}: {cpus:g} CPU, {gpus:g} GPU, x{n}"
+        t.add_row(r.stage, r.scene or "-", r.status, r.key[:12], desc)
+    console.print(t)
+    counts = {s: sum(1 for r in rows if r.status == s) for s in ("cached", "to run")}
+    console.print(", ".join(f"{n} {s}" for s, n in counts.items()))
+
+
+def init_ray(cfg: DictConfig) -> bool:
+    """Start (or join) Ray as the cluster config says; True if this call started it."""
+    if ray.is_initialized():
+        return False
+    c = cfg.cluster
+    # Workers import the stage modules: give them the driver's import path.
+    env_vars = {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    kwargs = {"include_dashboard": False, "log_to_driver": cfg.run.worker_logs, "runtime_env": {"env_vars": env_vars}}
+    if c.address:
+        ray.init(address=c.address, **kwargs)
+    else:
+        ray.init(num_cpus=c.num_cpus, num_gpus=c.num_gpus, **kwargs)
+    return True
+
+
+def _run_key(pipe_name: str, order: list[str], rows: list[PlanRow]) -> str:
+    h = hashlib.sha256(json.dumps([pipe_name, order, [r.key for r in rows]]).encode())
+    return h.hexdigest()
+
+
+def run_pipeline(cfg: DictConfig, dry_run: bool = False, live: bool | None = None) -> RunSummary:
+    pipe = load_pipeline(cfg)
+    order = pipe.ancestors(list(cfg.targets)) if cfg.targets else list(pipe.order)
+    meta = ensure_data(cfg)
+    res = {k: dict(v) for k, v in OmegaConf.to_container(cfg.cluster.resources, resolve=True).items()}
+    workdir = Path(cfg.workdir).resolve()
+    base_env = dict(
+        cache_uri=cfg.cache.uri,
+        data_root=str(Path(cfg.data.root).resolve()),
+        data_fingerprint=meta["fingerprint"],
+        scenes=tuple(meta["scenes"]),
+        checkpoint_root=str(workdir / "checkpoints"),
+        resources=res,
+        on_scene_error=cfg.run.on_scene_error,
+        max_retries=cfg.run.max_retries,
+        seed=cfg.seed,
+        train_settings={"checkpoint_every": cfg.run.checkpoint_every, "max_failures": cfg.run.max_failures},
+    )
+    rows = plan(pipe, order, cfg, RunEnv(sink=None, parent_run_id=None, progress=None, **base_env))
+    if dry_run or cfg.run.plan:
+        print_plan(rows, RunEnv(sink=None, parent_run_id=None, progress=None, **base_env))
+        return RunSummary()
+    started = init_ray(cfg)
+    sink, close = open_tracking(cfg.tracking)
+    summary = RunSummary()
+    try:
+        call(sink, "reconcile")
+        run_key = _run_key(pipe.name, order, rows)
+        parent = _parent_run(sink, cfg, pipe, run_key)
+        summary.parent_run_id = parent
+        progress = ProgressActor.remote()
+        env = RunEnv(sink=sink, parent_run_id=parent, progress=progress, **base_env)
+        with RunGuard(sink, parent):
+            _execute_dag(pipe, order, cfg, env, summary, progress, live)
+            call(sink, "log_metrics", parent, {"stages_run": sum(not r.cached for r in summary.results.values())})
+            if summary.failed:
+                raise StageFailed(next(iter(summary.failed)), {None: next(iter(summary.failed.values()))})
+    except StageFailed:
+        pass  # the parent run is FAILED by the guard; the caller reports from the summary
+    finally:
+        close()
+        if started:
+            ray.shutdown()
+    return summary
+
+
+def _parent_run(sink, cfg: DictConfig, pipe: Pipeline, run_key: str) -> str:
+    """Re-running the same command continues the same parent run."""
+    found = call(sink, "search_runs", f"tags.`gdwm.run_key` = '{run_key}'")
+    if found:
+        call(sink, "reopen_run", found[0]["run_id"])
+        return found[0]["run_id"]
+    tags = {"gdwm.kind": "run", "gdwm.run_key": run_key, "gdwm.pipeline": pipe.name}
+    run_id = call(sink, "create_run", f"run-{pipe.name}-{run_key[:8]}", tags, None)
+    call(sink, "log_params", run_id, OmegaConf.to_container(cfg, resolve=True))
+    return run_id
+
+
+def _execute_dag(pipe, order, cfg, env: RunEnv, summary: RunSummary, progress, live: bool | None) -> None:
+    refs: dict[str, ray.ObjectRef] = {}
+    t0 = time.time()
+    for name in order:
+        sd = pipe.stages[name]
+        fn = run_scene_stage if sd.per_scene else run_stage
+        ups = [refs[u] for u in sd.upstream]
+        refs[name] = fn.options(**task_options(sd, env)).remote(sd, subset(cfg, sd.config), env, *ups)
+    pending = {ref: name for name, ref in refs.items()}
+    show_live = cfg.run.live if live is None else live
+    show_live = show_live and console.is_terminal
+
+    def poll() -> None:
+        ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=0.5)
+        for ref in ready:
+            name = pending.pop(ref)
+            summary.wall[name] = time.time() - t0
+            try:
+                summary.results[name] = ray.get(ref)
+            except Exception as e:  # Ray re-raises a task's error as a subclass of both RayTaskError and it
+                root = _root_cause(e)
+                if isinstance(root, StageFailed) and root.stage != name:
+                    summary.blocked.append(name)
+                    env.progress.status.remote(name, None, "blocked", message=f"upstream {root.stage} failed")
+                elif isinstance(root, StageFailed):
+                    summary.failed[name] = StageFailed.__str__(root)
+                else:
+                    summary.failed[name] = f"stage '{name}' failed: {root!r}"
+
+    if show_live:
+        with Live(render([], order), console=console, refresh_per_second=4) as view:
+            while pending:
+                poll()
+                view.update(render(ray.get(progress.snapshot.remote()), order))
+    else:
+        while pending:
+            poll()
+    print_summary(summary, order, ray.get(progress.snapshot.remote()))
+
+
+def _root_cause(e: BaseException) -> BaseException:
+    while isinstance(e, ray.exceptions.RayTaskError) and e.cause is not None and e.cause is not e:
+        e = e.cause
+    return e
+
+
+def print_summary(summary: RunSummary, order: list[str], items) -> None:
+    t = Table(title="run summary", header_style="bold")
+    for col in ("stage", "status", "wall s", "cache key", "MLflow run"):
+        t.add_column(col)
+    heads = {i.stage: i for i in items if i.scene is None}
+    for name in order:
+        r = summary.results.get(name)
+        if r is not None:
+            status = "cached" if r.cached else "done"
+            if r.failed:
+                status += f" ({len(r.failed)} scene(s) skipped)"
+        elif name in summary.failed:
+            status = "failed"
+        else:
+            status = "blocked"
+        wall = heads[name].wall if name in heads and heads[name].wall is not None else None
+        key = r.key[:12] if r else (heads[name].key[:12] if name in heads else "")
+        run_id = (r.run_id or "") if r else (heads[name].run_id if name in heads else "")
+        t.add_row(name, status, f"{wall:.1f}" if wall is not None else "", key, run_id)
+    console.print(t)
+    for msg in summary.failed.values():
+        console.print(f"[red]{msg}[/red]", markup=True)

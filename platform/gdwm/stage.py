@@ -1,0 +1,132 @@
+"""The stage API: the one part of gdwm that ``pipelines`` imports.
+
+A stage is a named, versioned function of (its config subtrees, its upstream outputs, the
+data fingerprint) to an output directory (DESIGN §4)::
+
+    @stage("distill", version="1", config=["stage.distill", "model.encoder"], upstream=["reconstruct"],
+           per_scene=True, resources="gpu", setup=load_encoder)
+    def distill(ctx: StageContext) -> None:
+        gaussians_dir = ctx.upstream["reconstruct"].scenes[ctx.scene]
+        ...  # write files under ctx.out_dir, log with ctx.tracker, report with ctx.progress
+
+``setup(cfg)`` loads heavy state once per actor (per-scene stages) and arrives as ``ctx.state``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+RESOURCE_CLASSES = ("cpu", "gpu", "train", "eval")
+
+
+@dataclass(frozen=True)
+class StageDef:
+    """What a stage declares about itself; the executor needs nothing else."""
+
+    name: str
+    version: str
+    fn: Callable[[StageContext], Any]
+    config: tuple[str, ...] = ()
+    """Dotted config subtrees the output depends on; they (and nothing else) enter the cache key."""
+    upstream: tuple[str, ...] = ()
+    per_scene: bool = False
+    resources: str = "cpu"
+    setup: Callable[[Mapping], Any] | None = None
+
+    def __post_init__(self) -> None:
+        if self.resources not in RESOURCE_CLASSES:
+            raise ValueError(
+                f"stage '{self.name}': resources must be one of {RESOURCE_CLASSES}, got '{self.resources}'"
+            )
+        if not self.version:
+            raise ValueError(f"stage '{self.name}': version must be non-empty")
+
+    def __reduce__(self):
+        # Ship by reference (module + attribute), so Ray workers import the real stage, not a pickled copy.
+        return (_load_stage, (self.fn.__module__, self.fn.__name__))
+
+
+_REGISTRY: dict[tuple[str, str], StageDef] = {}
+
+
+def _load_stage(module: str, attr: str) -> StageDef:
+    import importlib
+
+    importlib.import_module(module)
+    return _REGISTRY[(module, attr)]
+
+
+def stage(
+    name: str,
+    version: str,
+    config: Sequence[str] = (),
+    upstream: Sequence[str] = (),
+    per_scene: bool = False,
+    resources: str = "cpu",
+    setup: Callable[[Mapping], Any] | None = None,
+) -> Callable[[Callable[[StageContext], Any]], StageDef]:
+    """Declare a stage; the decorated name becomes its StageDef (point ``_target_`` at it)."""
+
+    def wrap(fn: Callable[[StageContext], Any]) -> StageDef:
+        sd = StageDef(name, str(version), fn, tuple(config), tuple(upstream), per_scene, resources, setup)
+        _REGISTRY[(fn.__module__, fn.__name__)] = sd
+        return sd
+
+    return wrap
+
+
+@dataclass(frozen=True)
+class UpstreamOutput:
+    """A published upstream entry as a stage sees it."""
+
+    name: str
+    key: str
+    path: Path | None
+    """Local directory with the entry's files (None for per-scene stages: see ``scenes``)."""
+    extra: Mapping[str, Any] = field(default_factory=dict)
+    scenes: Mapping[str, Path] = field(default_factory=dict)
+    """Per-scene stages: scene id -> local directory of that scene's entry (failed, skipped scenes absent)."""
+
+
+@dataclass
+class StageContext:
+    """Everything a stage function receives."""
+
+    name: str
+    key: str
+    config: Mapping[str, Any]
+    """The resolved config subtrees the stage declared, by dotted key (plain containers)."""
+    out_dir: Path
+    """Write outputs here; the platform publishes them atomically after the function returns."""
+    upstream: Mapping[str, UpstreamOutput]
+    data_root: Path
+    data_fingerprint: str
+    tracker: Any
+    """``gdwm.tracking.Tracker`` bound to this stage's MLflow run (params, step-aware metrics, artifacts)."""
+    checkpoint_dir: Path
+    """Persistent across attempts of the same key: training resumes from what it finds here."""
+    resources: Mapping[str, float]
+    scene: str | None = None
+    state: Any = None
+    progress_sink: Any = None
+    seed: int = 0
+    train_settings: Mapping[str, Any] = field(default_factory=dict)
+
+    def cfg(self, dotted: str) -> Any:
+        """One declared config subtree, e.g. ``ctx.cfg("stage.lora")``."""
+        if dotted not in self.config:
+            raise KeyError(f"stage '{self.name}' did not declare config '{dotted}' (declared: {sorted(self.config)})")
+        return self.config[dotted]
+
+    def progress(self, done: int, total: int, message: str = "") -> None:
+        if self.progress_sink is not None:
+            self.progress_sink.update.remote(self.name, self.scene, done, total, message)
+
+    def train(self, loop: Callable[[dict], None], loop_config: Mapping[str, Any] | None = None) -> Any:
+        """Run ``loop`` under Ray Train with this stage's ScalingConfig; resumes from ``checkpoint_dir``."""
+        from gdwm.training import fit
+
+        return fit(self, loop, dict(loop_config or {}))

@@ -1,0 +1,37 @@
+"""MLflow tracking (DESIGN §6): one backend class talks to MLflow; with sqlite it lives in one Ray actor,
+the single writer; stages log through a ``Tracker`` bound to their run; ``RunGuard`` and ``reconcile``
+make sure no run is left RUNNING."""
+
+from gdwm.tracking.backend import (
+    DEFAULT_SYSTEM_METRICS_INTERVAL_S,
+    STAGE_TAG,
+    Sink,
+    TrackingActor,
+    TrackingBackend,
+    call,
+    open_tracking,
+)
+from gdwm.tracking.guard import RunGuard
+from gdwm.tracking.owner import OWNER_TAG, RECONCILED_TAG, owner_is_alive, parse_owner, process_owner
+from gdwm.tracking.params import batches, flatten_params, truncate
+from gdwm.tracking.tracker import Tracker
+
+__all__ = [
+    "DEFAULT_SYSTEM_METRICS_INTERVAL_S",
+    "OWNER_TAG",
+    "RECONCILED_TAG",
+    "STAGE_TAG",
+    "RunGuard",
+    "Sink",
+    "Tracker",
+    "TrackingActor",
+    "TrackingBackend",
+    "batches",
+    "call",
+    "flatten_params",
+    "open_tracking",
+    "owner_is_alive",
+    "parse_owner",
+    "process_owner",
+    "truncate",
+]

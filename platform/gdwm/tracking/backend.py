@@ -1,0 +1,259 @@
+"""The one object that talks to MLflow, its Ray actor (the single writer for sqlite) and the factory."""
+
+from __future__ import annotations
+
+import logging
+import time
+import uuid
+from collections.abc import Callable, Mapping
+from datetime import UTC, datetime
+from typing import Any
+
+import ray
+from mlflow import MlflowClient
+from mlflow.entities import Metric, Param, RunStatus, RunTag, ViewType
+from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID
+from ray.actor import ActorHandle
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+from gdwm.tracking.owner import OWNER_TAG, RECONCILED_TAG, owner_is_alive, process_owner
+from gdwm.tracking.params import (
+    MAX_METRICS_PER_BATCH,
+    MAX_PARAMS_TAGS_PER_BATCH,
+    MAX_TAG_VAL_LENGTH,
+    batches,
+    flatten_params,
+    truncate,
+)
+
+log = logging.getLogger(__name__)
+
+TERMINAL = ("FINISHED", "FAILED", "KILLED")
+STAGE_TAG = "gdwm.stage"
+DEFAULT_SYSTEM_METRICS_INTERVAL_S = 10.0
+_PAGE = 1000
+
+
+class TrackingBackend:
+    """Wraps ``MlflowClient(uri)`` for one experiment; every MLflow write of gdwm goes through one of these."""
+
+    def __init__(
+        self,
+        uri: str,
+        experiment: str,
+        artifact_location: str | None = None,
+        default_tags: Mapping[str, str] | None = None,
+        system_metrics_interval_s: float = DEFAULT_SYSTEM_METRICS_INTERVAL_S,
+    ):
+        self.uri = uri
+        self.experiment = experiment
+        self.artifact_location = artifact_location
+        self.default_tags = dict(default_tags or {})
+        self.system_metrics_interval_s = system_metrics_interval_s
+        self._connect()
+
+    def _connect(self) -> None:
+        self.client = MlflowClient(self.uri)
+        self._monitors: dict[str, SystemMetricsMonitor] = {}
+        exp = self.client.get_experiment_by_name(self.experiment)
+        if exp is None:
+            self.experiment_id = self.client.create_experiment(self.experiment, self.artifact_location)
+            return
+        if exp.lifecycle_stage == "deleted":
+            self.client.restore_experiment(exp.experiment_id)
+        self.experiment_id = exp.experiment_id
+
+    # Shipped to workers in server mode: reconnect there instead of pickling a client and its threads.
+    def __getstate__(self) -> dict[str, Any]:
+        keys = ("uri", "experiment", "artifact_location", "default_tags", "system_metrics_interval_s")
+        return {k: self.__dict__[k] for k in keys}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._connect()
+
+    def ready(self) -> str:
+        """The experiment id (a cheap round trip that proves an actor started)."""
+        return self.experiment_id
+
+    def _owner(self) -> str:
+        return self.default_tags.get(OWNER_TAG) or process_owner()
+
+    def create_run(self, name: str, tags: Mapping[str, str], parent_run_id: str | None = None) -> str:
+        """A RUNNING run; stage runs (tagged ``gdwm.stage``) also get system metrics."""
+        all_tags = {OWNER_TAG: self._owner(), **self.default_tags, **tags}
+        if parent_run_id:
+            all_tags[MLFLOW_PARENT_RUN_ID] = parent_run_id
+        all_tags = {k: truncate(str(v), MAX_TAG_VAL_LENGTH) for k, v in all_tags.items()}
+        run_id = self.client.create_run(self.experiment_id, tags=all_tags, run_name=name).info.run_id
+        if STAGE_TAG in all_tags:
+            self.start_system_metrics(run_id)
+        return run_id
+
+    def reopen_run(self, run_id: str) -> None:
+        """RUNNING again (resuming a KILLED/FAILED run), owned by this backend's owner from now on."""
+        self.client.update_run(run_id, status="RUNNING")
+        self.set_tags(run_id, {OWNER_TAG: self._owner()})
+        if STAGE_TAG in self.client.get_run(run_id).data.tags:
+            self.start_system_metrics(run_id, resume=True)
+
+    def log_params(self, run_id: str, params: Mapping[str, Any]) -> None:
+        items = [Param(k, v) for k, v in flatten_params(params).items()]
+        for chunk in batches(items, MAX_PARAMS_TAGS_PER_BATCH):
+            self.client.log_batch(run_id, params=chunk)
+
+    def log_metrics(
+        self, run_id: str, metrics: Mapping[str, float], step: int | None = None, timestamp_ms: int | None = None
+    ) -> None:
+        ts = int(time.time() * 1000) if timestamp_ms is None else timestamp_ms
+        items = [Metric(k, float(v), ts, step or 0) for k, v in metrics.items()]
+        for chunk in batches(items, MAX_METRICS_PER_BATCH):
+            self.client.log_batch(run_id, metrics=chunk)
+
+    def set_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
+        items = [RunTag(k, truncate(str(v), MAX_TAG_VAL_LENGTH)) for k, v in tags.items()]
+        for chunk in batches(items, MAX_PARAMS_TAGS_PER_BATCH):
+            self.client.log_batch(run_id, tags=chunk)
+
+    def log_artifact(self, run_id: str, local_path: str, artifact_path: str | None = None) -> None:
+        self.client.log_artifact(run_id, local_path, artifact_path)
+
+    def log_text(self, run_id: str, text: str, artifact_file: str) -> None:
+        self.client.log_text(run_id, text, artifact_file)
+
+    def end_run(self, run_id: str, status: str = "FINISHED") -> None:
+        if status not in TERMINAL:
+            raise ValueError(f"run {run_id}: end status must be one of {TERMINAL}, got {status!r}")
+        self.stop_system_metrics(run_id)
+        self.client.set_terminated(run_id, status)
+
+    def start_system_metrics(self, run_id: str, resume: bool = False) -> None:
+        """Sample CPU/memory/disk/network (and GPU) of *this* process's host into ``system/*`` every
+        ``system_metrics_interval_s`` (<= 0: off) until the run ends. In single-writer mode this runs in the
+        tracking actor (the only sqlite writer, on the driver's node); in server mode in the process that
+        created the run (the stage's task)."""
+        if run_id in self._monitors or self.system_metrics_interval_s <= 0:
+            return
+        monitor = SystemMetricsMonitor(
+            run_id, sampling_interval=self.system_metrics_interval_s, resume_logging=resume, tracking_uri=self.uri
+        )
+        monitor.start()
+        self._monitors[run_id] = monitor
+
+    def stop_system_metrics(self, run_id: str) -> None:
+        monitor = self._monitors.pop(run_id, None)
+        if monitor is not None:
+            monitor.finish()
+
+    def close(self) -> None:
+        """Stop every system-metrics monitor (flushing their last samples)."""
+        for run_id in list(self._monitors):
+            self.stop_system_metrics(run_id)
+
+    def search_runs(
+        self, filter_string: str = "", max_results: int = 1000, order_by: list[str] | None = None
+    ) -> list[dict]:
+        out: list[dict] = []
+        token = None
+        while len(out) < max_results:
+            page = self.client.search_runs(
+                [self.experiment_id],
+                filter_string,
+                ViewType.ACTIVE_ONLY,
+                max_results=min(_PAGE, max_results - len(out)),
+                order_by=order_by,
+                page_token=token,
+            )
+            out += [_run_dict(r) for r in page]
+            token = page.token
+            if not token:
+                break
+        return out
+
+    def metric_history(self, run_id: str, key: str) -> list[tuple[int, float]]:
+        history = sorted(self.client.get_metric_history(run_id, key), key=lambda m: (m.step, m.timestamp))
+        return [(m.step, m.value) for m in history]
+
+    def reconcile(self, is_alive: Callable[[str], bool] | None = None) -> list[str]:
+        """End KILLED every RUNNING run whose owner is gone (or unknown); returns their ids."""
+        is_alive = is_alive or owner_is_alive
+        now = datetime.now(UTC).isoformat(timespec="seconds")
+        killed = []
+        for run in self.search_runs(f"attributes.status = '{RunStatus.to_string(RunStatus.RUNNING)}'", 10**9):
+            owner = run["tags"].get(OWNER_TAG)
+            if owner is not None and is_alive(owner):
+                continue
+            self.set_tags(run["run_id"], {RECONCILED_TAG: now})
+            self.end_run(run["run_id"], "KILLED")
+            killed.append(run["run_id"])
+        if killed:
+            log.warning("reconciled %d run(s) left RUNNING by dead owners: %s", len(killed), ", ".join(killed))
+        return killed
+
+
+def _run_dict(run) -> dict:
+    info = run.info
+    return {
+        "run_id": info.run_id,
+        "name": info.run_name,
+        "status": info.status,
+        "start_time": info.start_time,
+        "end_time": info.end_time,
+        "artifact_uri": info.artifact_uri,
+        "tags": dict(run.data.tags),
+        "params": dict(run.data.params),
+        "metrics": dict(run.data.metrics),
+    }
+
+
+# One call at a time: the actor is the only process writing a sqlite store.
+TrackingActor = ray.remote(num_cpus=0, max_concurrency=1)(TrackingBackend)
+
+Sink = TrackingBackend | ActorHandle
+
+
+def call(sink: Sink, method: str, *args, **kwargs) -> Any:
+    """``sink.method(*args)`` on a backend, or the same on the actor, waiting for its result."""
+    if isinstance(sink, ActorHandle):
+        return ray.get(getattr(sink, method).remote(*args, **kwargs))
+    return getattr(sink, method)(*args, **kwargs)
+
+
+def _field(cfg: Any, name: str, default: Any) -> Any:
+    try:
+        value = getattr(cfg, name)
+    except (AttributeError, KeyError):
+        return default
+    return default if value is None else value
+
+
+def open_tracking(cfg_tracking: Any, owner_tags: Mapping[str, str] | None = None) -> tuple[Sink, Callable[[], None]]:
+    """``(sink, close)`` for a ``TrackingConfig``: the single-writer actor (needs Ray initialised, pinned to
+    this node where the sqlite file lives) or a local backend. ``owner_tags`` (default: this process as
+    ``gdwm.owner``) go on every run the sink creates; ``close()`` stops monitors and kills the actor."""
+    tags = dict(owner_tags) if owner_tags is not None else {OWNER_TAG: process_owner()}
+    interval = float(_field(cfg_tracking, "system_metrics_interval_s", DEFAULT_SYSTEM_METRICS_INTERVAL_S))
+    args = (cfg_tracking.uri, cfg_tracking.experiment, cfg_tracking.artifact_location, tags, interval)
+    if not cfg_tracking.single_writer:
+        backend = TrackingBackend(*args)
+        return backend, backend.close
+    if not ray.is_initialized():
+        raise RuntimeError(
+            f"tracking.single_writer=true ({cfg_tracking.uri}): the tracking actor needs Ray; call ray.init() first"
+        )
+    here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
+    actor = TrackingActor.options(name=f"gdwm-tracking-{uuid.uuid4().hex[:12]}", scheduling_strategy=here).remote(*args)
+    ray.get(actor.ready.remote())
+    closed = []
+
+    def close() -> None:
+        if closed:
+            return
+        closed.append(True)
+        try:
+            ray.get(actor.close.remote())
+        finally:
+            ray.kill(actor)
+
+    return actor, close

@@ -1,0 +1,63 @@
+"""Flattening configs into MLflow params and splitting writes to MLflow's batch limits."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator, Mapping, Sequence
+from typing import Any
+
+from mlflow.utils.validation import (
+    MAX_METRICS_PER_BATCH,
+    MAX_PARAM_VAL_LENGTH,
+    MAX_PARAMS_TAGS_PER_BATCH,
+    MAX_TAG_VAL_LENGTH,
+)
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+__all__ = [
+    "MAX_METRICS_PER_BATCH",
+    "MAX_PARAMS_TAGS_PER_BATCH",
+    "MAX_PARAM_VAL_LENGTH",
+    "MAX_TAG_VAL_LENGTH",
+    "batches",
+    "flatten_params",
+    "truncate",
+]
+
+
+def truncate(value: str, limit: int) -> str:
+    """``value`` cut to ``limit`` chars, ending in a marker that gives the original length."""
+    if len(value) <= limit:
+        return value
+    marker = f"...[truncated, {len(value)} chars]"
+    return value[: limit - len(marker)] + marker
+
+
+def _plain(value: Any) -> Any:
+    return OmegaConf.to_container(value, resolve=True) if isinstance(value, DictConfig | ListConfig) else value
+
+
+def flatten_params(cfg: Mapping | DictConfig, prefix: str = "") -> dict[str, str]:
+    """``{"a": {"b": 1}, "l": [1, 2]}`` -> ``{"a.b": "1", "l": "[1, 2]"}``; values cut to MLflow's param limit."""
+    out: dict[str, str] = {}
+    for key, value in _plain(cfg).items():
+        full = f"{prefix}{key}"
+        value = _plain(value)
+        if isinstance(value, Mapping) and value:
+            out.update(flatten_params(value, f"{full}."))
+            continue
+        if isinstance(value, Mapping | list | tuple):
+            text = json.dumps(value, default=str)
+        else:
+            text = str(value)
+        out[full] = truncate(text, MAX_PARAM_VAL_LENGTH)
+    return out
+
+
+def batches(items: Sequence, size: int) -> Iterator[list]:
+    """Consecutive slices of at most ``size`` items (the last may be shorter; none when empty)."""
+    if size < 1:
+        raise ValueError(f"batch size must be >= 1, got {size}")
+    items = list(items)
+    for start in range(0, len(items), size):
+        yield items[start : start + size]

@@ -1,0 +1,132 @@
+"""Test-only stages with the real pipeline's shape; behaviour injected through environment variables.
+
+GDWM_TEST_DIR      every execution appends "<stage> <scene>" to executions.log here
+GDWM_TEST_KILL     "stage:scene" (or "stage:step=N" for training) — SIGKILL the worker once (marker file)
+GDWM_TEST_FAIL     "stage:scene" — raise ValueError in that scene
+GDWM_TEST_BLOCK    "stage" — wait until the file GDWM_TEST_DIR/release exists (lets a test kill the driver)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gdwm.stage import StageContext, stage
+
+
+def _test_dir() -> Path:
+    return Path(os.environ["GDWM_TEST_DIR"])
+
+
+def _record(ctx: StageContext) -> None:
+    with open(_test_dir() / "executions.log", "a") as f:
+        f.write(f"{ctx.name} {ctx.scene or '-'} {ctx.key[:12]} {os.getpid()}\n")
+
+
+def _once(tag: str) -> bool:
+    marker = _test_dir() / f"marker-{tag}"
+    if marker.exists():
+        return False
+    marker.touch()
+    return True
+
+
+def _inject(ctx: StageContext) -> None:
+    target = f"{ctx.name}:{ctx.scene}"
+    if os.environ.get("GDWM_TEST_KILL") == target and _once(target.replace(":", "-")):
+        os.kill(os.getpid(), signal.SIGKILL)
+    if os.environ.get("GDWM_TEST_FAIL") == target:
+        raise ValueError(f"injected failure in {target}")
+    if os.environ.get("GDWM_TEST_BLOCK") == ctx.name:
+        (_test_dir() / f"blocked-{ctx.name}").touch()
+        while not (_test_dir() / "release").exists():
+            time.sleep(0.1)
+
+
+def _setup(cfg: dict) -> dict:
+    # Stands in for a heavy model: counts how often actors load it.
+    with open(_test_dir() / "setups.log", "a") as f:
+        f.write(f"{os.getpid()}\n")
+    return {"loaded_at": time.time()}
+
+
+@stage("reconstruct", "1", config=["stage.reconstruct"], per_scene=True, resources="cpu", setup=_setup)
+def reconstruct(ctx: StageContext) -> dict:
+    _record(ctx)
+    _inject(ctx)
+    assert ctx.state is not None
+    seed = int.from_bytes(ctx.scene.encode()[-4:], "little")
+    pts = np.random.default_rng(seed).normal(size=(64, 3)) * ctx.cfg("stage.reconstruct")["scale"]
+    np.save(ctx.out_dir / "points.npy", pts)
+    ctx.tracker.log_metrics({"psnr": 20.0 + seed % 7}, step=0)
+    return {"points": 64}
+
+
+@stage("distill", "1", config=["stage.distill"], upstream=["reconstruct"], per_scene=True, resources="gpu")
+def distill(ctx: StageContext) -> None:
+    _record(ctx)
+    _inject(ctx)
+    pts = np.load(ctx.upstream["reconstruct"].scenes[ctx.scene] / "points.npy")
+    dim = ctx.cfg("stage.distill")["dim"]
+    np.save(ctx.out_dir / "features.npy", np.tanh(pts @ np.ones((3, dim))))
+
+
+def _train_loop(s) -> None:
+    state = s.restore()
+    start = state["step"] + 1 if state else 0
+    w = state["w"] if state else torch.zeros(4)
+    kill = os.environ.get("GDWM_TEST_KILL", "")
+    for step in range(start, s.config["steps"]):
+        w = w + s.config["target"]
+        s.report(step, {"loss": float(1.0 / (step + 1)), "start": float(start)}, state={"step": step, "w": w})
+        if kill == f"{s.config['stage']}:step={step}" and _once(f"{s.config['stage']}-step"):
+            os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _train_stage(ctx: StageContext, steps: int, target: float) -> None:
+    _record(ctx)
+    _inject(ctx)
+    result = ctx.train(_train_loop, {"steps": steps, "target": target, "stage": ctx.name})
+    torch.save({"w": result.state["w"]}, ctx.out_dir / "weights.pt")
+
+
+@stage("tokenizer", "1", config=["stage.tokenizer"], upstream=["distill"], resources="train")
+def tokenizer(ctx: StageContext) -> None:
+    n = sum(np.load(p / "features.npy").size for p in ctx.upstream["distill"].scenes.values())
+    _train_stage(ctx, ctx.cfg("stage.tokenizer")["steps"], float(n % 5))
+
+
+@stage("lora", "1", config=["stage.lora"], upstream=["tokenizer"], resources="train")
+def lora(ctx: StageContext) -> None:
+    _train_stage(ctx, ctx.cfg("stage.lora")["steps"], float(ctx.cfg("stage.lora")["rank"]))
+
+
+@stage("evaluate_qa", "1", config=["stage.evaluate_qa"], upstream=["lora"], resources="eval")
+def evaluate_qa(ctx: StageContext) -> dict:
+    _record(ctx)
+    _inject(ctx)
+    w = torch.load(ctx.upstream["lora"].path / "weights.pt", weights_only=True)["w"]
+    metrics = {"acc": float(w.sum())}
+    ctx.tracker.log_metrics(metrics)
+    (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics))
+    return metrics
+
+
+@stage("diffusion", "1", config=["stage.diffusion"], upstream=["lora"], resources="train")
+def diffusion(ctx: StageContext) -> None:
+    _train_stage(ctx, ctx.cfg("stage.diffusion")["steps"], 0.5)
+
+
+@stage("evaluate_gen", "1", config=["stage.evaluate_gen"], upstream=["diffusion"], resources="eval")
+def evaluate_gen(ctx: StageContext) -> dict:
+    _record(ctx)
+    _inject(ctx)
+    w = torch.load(ctx.upstream["diffusion"].path / "weights.pt", weights_only=True)["w"]
+    (ctx.out_dir / "metrics.json").write_text(json.dumps({"psnr": float(w.mean())}))
+    return {"psnr": float(w.mean())}

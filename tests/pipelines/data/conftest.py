@@ -1,0 +1,20 @@
+"""Shared fixtures of the data tests (synthetic_mini ones are named ``synth_*``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pipelines.data.synth import SynthConfig, build
+
+
+@pytest.fixture(scope="session")
+def synth_small_cfg() -> SynthConfig:
+    """2 scenes (a bend and a stop) x 10 frames at 64x36: every task family, a few seconds to build."""
+    return SynthConfig(num_scenes=2, num_frames=10, width=64, height=36, seed=0)
+
+
+@pytest.fixture(scope="session")
+def synth_small(synth_small_cfg, tmp_path_factory) -> Path:
+    return build(synth_small_cfg, tmp_path_factory.mktemp("synth") / "small")
