@@ -15,13 +15,10 @@ from pathlib import Path
 
 from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
-from rich.console import Console
 from rich.table import Table
 
 from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config
-
-console = Console(highlight=False)
-err_console = Console(stderr=True, highlight=False)
+from gdwm.term import console, err_console
 
 
 class CommandError(Exception):

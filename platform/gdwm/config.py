@@ -76,6 +76,8 @@ class TrackingConfig:
     """MLflow experiment name."""
     single_writer: bool = True
     """Route every write through one process (required for sqlite)."""
+    system_metrics_interval_s: float = 10.0
+    """Sampling interval of MLflow system metrics on stage runs; <= 0 turns them off."""
 
 
 @dataclass

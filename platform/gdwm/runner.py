@@ -13,7 +13,6 @@ from pathlib import Path
 import ray
 from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
-from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
@@ -31,9 +30,8 @@ from gdwm.executor import (
     upstream_keys,
 )
 from gdwm.progress import ProgressActor, render
+from gdwm.term import console
 from gdwm.tracking import RunGuard, call, open_tracking
-
-console = Console(highlight=False)
 
 
 class RunError(Exception):

@@ -1,5 +1,6 @@
 """DESIGN §6: MLflow tracking — one writer for sqlite, batches within MLflow's limits, no run left RUNNING."""
 
+import contextlib
 import dataclasses
 import os
 import pickle
@@ -303,20 +304,16 @@ def test_run_guard_end_status(backend, exc, status):
     before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
     parent = backend.create_run("sweep", {})
     child = backend.create_run("trial", {}, parent_run_id=parent)
-    with pytest.raises(type(exc)) if exc else _nothing(), RunGuard(backend, parent), RunGuard(backend, child):
+    with (
+        pytest.raises(type(exc)) if exc else contextlib.nullcontext(),
+        RunGuard(backend, parent),
+        RunGuard(backend, child),
+    ):
         assert signal.getsignal(signal.SIGTERM) is not before[0]
         if exc:
             raise exc
     assert [run_of(backend, r)["status"] for r in (parent, child)] == [status, status]
     assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == before
-
-
-class _nothing:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
 
 
 def test_sigterm_ends_guarded_run_killed(cfg, tmp_path):
@@ -328,7 +325,8 @@ def test_sigterm_ends_guarded_run_killed(cfg, tmp_path):
         """
     proc, run_id = start_child(cfg, body, tmp_path)
     proc.send_signal(signal.SIGTERM)
-    assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+    proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGTERM
     run = run_of(TrackingBackend(cfg.uri, cfg.experiment, None), run_id)
     assert run["status"] == "KILLED"
     assert run["end_time"] is not None
@@ -338,7 +336,8 @@ def test_reconcile_kills_runs_of_dead_owners_only(cfg, tmp_path):
     backend = TrackingBackend(cfg.uri, cfg.experiment, cfg.artifact_location)
     proc, dead = start_child(cfg, "print(run_id, flush=True)\ntime.sleep(120)\n", tmp_path)
     proc.kill()
-    assert proc.wait(timeout=30) == -signal.SIGKILL
+    proc.communicate(timeout=30)
+    assert proc.returncode == -signal.SIGKILL
     # Only now (the child is gone) does this process write again: one writer at a time.
     mine = backend.create_run("live", {})
     elsewhere = backend.create_run("remote", {OWNER_TAG: "some-other-host:1:1.00"})

@@ -13,8 +13,16 @@ def make_dataset(root: Path, scenes: int = 3) -> Path:
     with DatasetWriter(root, name="toy", source="test") as w:
         for i in range(scenes):
             sid = f"scene-{i:04d}"
-            w.add("scenes", scene_id=sid, name=sid, num_frames=1, frame_rate_hz=2.0, description="", weathers=[],
-                  source="test")
+            w.add(
+                "scenes",
+                scene_id=sid,
+                name=sid,
+                num_frames=1,
+                frame_rate_hz=2.0,
+                description="",
+                weathers=[],
+                source="test",
+            )
             w.add("frames", scene_id=sid, frame_idx=0, timestamp_us=0, token=sid)
             w.add("ego_poses", scene_id=sid, frame_idx=0, ego2world=flat_pose(np.eye(4)))
     return root

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from pipelines.data.synth import SynthConfig, build
+from pipelines.data.synth.build import build
+from pipelines.data.synth.config import SynthConfig
 
 
 @pytest.fixture(scope="session")

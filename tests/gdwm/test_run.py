@@ -1,0 +1,261 @@
+"""`gdwm run` end to end through the real CLI on local Ray (2 CPUs, token auth on), with test stages.
+
+Executions are counted from the stages' own log (tests/gdwm/stages.py) and from MLflow stage runs.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import mlflow
+import pytest
+
+from gdwm.cache import Cache
+from tests.gdwm.toydata import make_dataset
+
+REPO = Path(__file__).resolve().parents[2]
+ALL = ["reconstruct", "distill", "tokenizer", "lora", "evaluate_qa", "diffusion", "evaluate_gen"]
+
+
+class Toy:
+    """One workdir + dataset + injection dir; runs the CLI against them."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self.data = root / "ds"
+        self.work = root / "w"
+        if not self.data.exists():
+            make_dataset(self.data)
+
+    def env(self, **inject: str) -> dict:
+        env = {k: v for k, v in os.environ.items() if not k.startswith("GDWM_TEST_")}
+        env.update(
+            PYTHONPATH=str(REPO), GDWM_CONF_PATH=str(REPO / "tests" / "conf"), GDWM_TEST_DIR=str(self.root), **inject
+        )
+        return env
+
+    def args(self, *overrides: str) -> list[str]:
+        base = ["experiment=toy", f"workdir={self.work}", f"data.root={self.data}"]
+        return [sys.executable, "-m", "gdwm", "run", *base, *overrides]
+
+    def run(self, *overrides: str, **inject: str) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            self.args(*overrides), env=self.env(**inject), capture_output=True, text=True, timeout=300
+        )
+
+    def executions(self) -> list[tuple[str, str]]:
+        log = self.root / "executions.log"
+        lines = log.read_text().splitlines() if log.exists() else []
+        return [tuple(line.split()[:2]) for line in lines]
+
+    def runs(self, kind: str = "stage") -> list:
+        client = mlflow.MlflowClient(f"sqlite:///{self.work.resolve()}/mlflow.db")
+        exp = client.get_experiment_by_name("gdwm")
+        return [
+            r for r in client.search_runs([exp.experiment_id], max_results=1000) if r.data.tags.get("gdwm.kind") == kind
+        ]
+
+    def client(self) -> mlflow.MlflowClient:
+        return mlflow.MlflowClient(f"sqlite:///{self.work.resolve()}/mlflow.db")
+
+
+def _ok(r: subprocess.CompletedProcess) -> None:
+    assert r.returncode == 0, f"exit {r.returncode}\nSTDOUT\n{r.stdout[-3000:]}\nSTDERR\n{r.stderr[-5000:]}"
+
+
+@pytest.fixture(scope="module")
+def first_run(tmp_path_factory) -> Toy:
+    toy = Toy(tmp_path_factory.mktemp("first"))
+    _ok(toy.run())
+    return toy
+
+
+def _copy(src: Toy, dst: Path) -> Toy:
+    shutil.copytree(src.root, dst, dirs_exist_ok=True, ignore=shutil.ignore_patterns("marker-*"))
+    (dst / "executions.log").write_text("")
+    return Toy(dst)
+
+
+def test_first_run_executes_every_stage_once(first_run):
+    ex = first_run.executions()
+    assert Counter(s for s, _ in ex) == {
+        "reconstruct": 3,
+        "distill": 3,
+        "tokenizer": 1,
+        "lora": 1,
+        "evaluate_qa": 1,
+        "diffusion": 1,
+        "evaluate_gen": 1,
+    }
+    runs = first_run.runs()
+    assert sorted(r.data.tags["gdwm.stage"] for r in runs) == sorted(ALL)
+    assert {r.info.status for r in runs} == {"FINISHED"}
+    parent = first_run.runs("run")
+    assert len(parent) == 1 and parent[0].info.status == "FINISHED"
+    assert {r.data.tags["mlflow.parentRunId"] for r in runs} == {parent[0].info.run_id}
+    # training curves are step-aware; per-scene metrics carry the scene
+    tok = next(r for r in runs if r.data.tags["gdwm.stage"] == "tokenizer")
+    assert [m.step for m in first_run.client().get_metric_history(tok.info.run_id, "loss")] == [0, 1, 2, 3]
+    rec = next(r for r in runs if r.data.tags["gdwm.stage"] == "reconstruct")
+    assert {"scene-0000/psnr", "scene-0001/psnr", "scene-0002/psnr"} <= set(rec.data.metrics)
+
+
+def test_identical_rerun_is_all_cache_hits(first_run, tmp_path):
+    toy = _copy(first_run, tmp_path)
+    before = {r.info.run_id for r in toy.runs()}
+    r = toy.run()
+    _ok(r)
+    assert toy.executions() == []
+    assert {r.info.run_id for r in toy.runs()} == before
+    assert "cached" in r.stdout and "done" not in r.stdout.split("run summary", 1)[1]
+
+
+def test_lora_change_reruns_lora_and_descendants_only(first_run, tmp_path):
+    toy = _copy(first_run, tmp_path)
+    _ok(toy.run("stage.lora.rank=8"))
+    assert sorted(s for s, _ in toy.executions()) == sorted(["lora", "evaluate_qa", "diffusion", "evaluate_gen"])
+    assert Counter(r.data.tags["gdwm.stage"] for r in toy.runs())["lora"] == 2
+
+
+def test_targets_run_only_ancestors(first_run, tmp_path):
+    toy = _copy(first_run, tmp_path)
+    _ok(toy.run("stage.lora.rank=16", "targets=[evaluate_qa]"))
+    assert sorted(s for s, _ in toy.executions()) == ["evaluate_qa", "lora"]
+
+
+def test_flipped_byte_is_detected_and_recomputed(first_run, tmp_path):
+    toy = _copy(first_run, tmp_path)
+    cache = Cache(toy.work / "cache")
+    entry = next(m for m in cache.entries("reconstruct") if m.scene == "scene-0001")
+    f = Path(cache.materialize(entry)) / "points.npy"
+    st = f.stat()
+    data = bytearray(f.read_bytes())
+    data[-1] ^= 0xFF
+    f.write_bytes(bytes(data))
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))
+    _ok(toy.run())
+    # only the corrupted scene recomputes; its key (from config) is unchanged, so nothing downstream reruns
+    assert toy.executions() == [("reconstruct", "scene-0001")]
+    assert cache.lookup("reconstruct", entry.key).files == entry.files
+
+
+def test_dry_run_prints_plan_without_running(first_run, tmp_path):
+    toy = _copy(first_run, tmp_path)
+    r = subprocess.run(
+        [*toy.args("stage.diffusion.steps=3"), "--dry-run"], env=toy.env(), capture_output=True, text=True, timeout=120
+    )
+    _ok(r)
+    assert toy.executions() == []
+    lines = {tuple(line.split("│")[1:4]) for line in r.stdout.splitlines() if line.count("│") >= 5}
+    status = {(a.strip(), b.strip()): c.strip() for a, b, c in lines}
+    assert status[("reconstruct", "scene-0002")] == "cached"
+    assert status[("diffusion", "-")] == "to run" and status[("evaluate_gen", "-")] == "to run"
+    assert status[("lora", "-")] == "cached"
+    assert "9 cached, 2 to run" in r.stdout
+
+
+def test_killed_scene_worker_is_retried_and_outputs_match(first_run, tmp_path):
+    toy = Toy(tmp_path)
+    _ok(toy.run(GDWM_TEST_KILL="reconstruct:scene-0001"))
+    assert (tmp_path / "marker-reconstruct-scene-0001").exists()
+    ex = toy.executions()
+    assert ex.count(("reconstruct", "scene-0001")) == 2  # the killed attempt and its retry
+    ref, got = Cache(first_run.work / "cache"), Cache(toy.work / "cache")
+    for m in ref.entries("reconstruct") + ref.entries("distill"):
+        mine = got.lookup(m.stage, m.key)
+        assert mine is not None and mine.files == m.files, (m.stage, m.scene)
+
+
+def test_killed_train_worker_resumes_from_last_checkpoint(tmp_path):
+    toy = Toy(tmp_path)
+    r = toy.run("targets=[tokenizer]", "cluster.resources.train.num_workers=1", GDWM_TEST_KILL="tokenizer:step=1")
+    _ok(r)
+    assert (tmp_path / "marker-tokenizer-step").exists()
+    tok = next(r for r in toy.runs() if r.data.tags["gdwm.stage"] == "tokenizer")
+    client = toy.client()
+    steps = [m.step for m in client.get_metric_history(tok.info.run_id, "loss")]
+    starts = [m.value for m in client.get_metric_history(tok.info.run_id, "start")]
+    assert steps.count(0) == 1, steps  # never restarted from step 0
+    assert max(steps) == 3
+    assert min(starts) == 0 and max(starts) >= 1, starts  # the restarted worker began after a checkpoint
+    assert tok.info.status == "FINISHED"
+
+
+def test_failing_stage_exits_1_naming_it_and_keeps_the_cache(first_run, tmp_path):
+    toy = _copy(first_run, tmp_path)
+    r = toy.run("stage.diffusion.steps=5", GDWM_TEST_FAIL="evaluate_gen:None")
+    assert r.returncode == 1, r.stderr
+    assert "stage 'evaluate_gen' failed: ValueError: injected failure in evaluate_gen:None" in r.stderr
+    failed = [x for x in toy.runs() if x.info.status == "FAILED"]
+    assert [x.data.tags["gdwm.stage"] for x in failed] == ["evaluate_gen"]
+    err = toy.client().download_artifacts(failed[0].info.run_id, "error.txt", str(tmp_path))
+    assert "ValueError: injected failure in evaluate_gen:None" in Path(err).read_text()
+    assert sorted(s for s, _ in toy.executions()) == ["diffusion", "evaluate_gen"]
+    # the new diffusion entry is kept: fixing the failure reruns only evaluate_gen
+    (tmp_path / "executions.log").write_text("")
+    _ok(toy.run("stage.diffusion.steps=5"))
+    assert toy.executions() == [("evaluate_gen", "-")]
+
+
+@pytest.mark.parametrize("policy", ["fail", "skip"])
+def test_scene_error_policy(first_run, tmp_path, policy):
+    toy = _copy(first_run, tmp_path)
+    r = toy.run(
+        "stage.distill.dim=5", f"run.on_scene_error={policy}", "targets=[distill]", GDWM_TEST_FAIL="distill:scene-0002"
+    )
+    ex = toy.executions()
+    assert sorted(ex) == [("distill", "scene-0000"), ("distill", "scene-0001"), ("distill", "scene-0002")]
+    cache = Cache(toy.work / "cache")
+    if policy == "fail":
+        assert r.returncode == 1
+        assert (
+            "stage 'distill' scene(s) ['scene-0002'] failed: ValueError: injected failure in distill:scene-0002"
+            in r.stderr
+        )
+    else:
+        _ok(r)
+        assert "1 scene(s) skipped" in r.stdout
+    # the scenes that worked are cached either way
+    new = [m for m in cache.entries("distill") if m.config == {"stage.distill": {"dim": 5}}]
+    assert sorted(m.scene for m in new) == ["scene-0000", "scene-0001"]
+
+
+def test_sigkilled_driver_resumes_without_duplicates(tmp_path):
+    toy = Toy(tmp_path)
+    proc = subprocess.Popen(
+        toy.args(),
+        env=toy.env(GDWM_TEST_BLOCK="lora"),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    try:
+        deadline = time.time() + 240
+        while not (tmp_path / "blocked-lora").exists():
+            assert proc.poll() is None, "driver exited before lora started"
+            assert time.time() < deadline, "lora never started"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        (tmp_path / "release").touch()  # frees a worker Ray's fate-sharing might have missed
+        if proc.poll() is None:
+            proc.kill()
+    assert {r.info.status for r in toy.runs()} >= {"RUNNING"}  # lora's run was left behind
+    before = Counter(s for s, _ in toy.executions())
+    assert before == {"reconstruct": 3, "distill": 3, "tokenizer": 1, "lora": 1}
+    (tmp_path / "executions.log").write_text("")
+    _ok(toy.run())
+    assert sorted(s for s, _ in toy.executions()) == sorted(["lora", "evaluate_qa", "diffusion", "evaluate_gen"])
+    runs = toy.runs() + toy.runs("run")
+    assert [r.info.status for r in runs if r.info.status != "FINISHED"] == []
+    per_key = Counter(r.data.tags["gdwm.cache_key"] for r in toy.runs())
+    assert max(per_key.values()) == 1
+    assert len(toy.runs("run")) == 1  # the same parent run continued
