@@ -9,10 +9,10 @@ import pkgutil
 import sys
 from pathlib import Path
 
-from rich.console import Console
 from rich.table import Table
 
 import benchmarks
+from gdwm.term import console
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -32,7 +32,6 @@ def main(argv: list[str] | None = None) -> int:
     unknown = sorted(set(args.names) - set(names))
     if unknown:
         ap.error(f"unknown benchmark(s) {unknown}; available: {names}")
-    console = Console()
     results = []
     for name in args.names or names:
         console.print(f"[bold]running {name}[/bold]")

@@ -351,6 +351,13 @@ class DatasetWriter:
         self._tables = {k: _Rows(s, []) for k, s in TABLES.items()}
         self.extra_meta: dict = {}
 
+    @classmethod
+    def files_into(cls, tmp: Path) -> DatasetWriter:
+        """A writer whose ``write_*`` methods target an existing temp dir (worker processes); it never publishes."""
+        w = cls(tmp, name="", source="")
+        w.tmp = Path(tmp)
+        return w
+
     # -- lifecycle
     def __enter__(self) -> DatasetWriter:
         if self.root.exists() and not self.overwrite:

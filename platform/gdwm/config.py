@@ -21,8 +21,8 @@ from typing import Any
 from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
 from hydra.errors import HydraException, MissingConfigException
-from omegaconf import MISSING, DictConfig, OmegaConf
-from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import InterpolationResolutionError, MissingMandatoryValue, OmegaConfBaseException
 
 PLUGIN_GROUP = "gdwm.plugins"
 MAIN_GROUPS = ("data", "pipeline", "cluster", "tracking")
@@ -194,21 +194,26 @@ def load_config(overrides: list[str] | tuple[str, ...] = (), config_name: str = 
     try:
         with initialize_config_dir(config_dir=str(conf_dir()), version_base="1.3"):
             cfg = compose(config_name=config_name, overrides=list(overrides))
+        _check_resolvable(cfg)
         OmegaConf.resolve(cfg)
-        _check_missing(cfg)
     except (HydraException, OmegaConfBaseException) as e:
         raise ConfigError(explain(e)) from e
     return cfg
 
 
-def _check_missing(cfg: DictConfig, prefix: str = "") -> None:
-    for key in cfg:
+def _check_resolvable(cfg: DictConfig | ListConfig, prefix: str = "") -> None:
+    """Touch every value so a missing value or failing interpolation names its full key."""
+    keys = cfg.keys() if isinstance(cfg, DictConfig) else range(len(cfg))
+    for key in keys:
         full = f"{prefix}{key}"
         if OmegaConf.is_missing(cfg, key):
             raise MissingMandatoryValue(f"Missing mandatory value: {full}\n    full_key: {full}")
-        value = cfg[key]
-        if isinstance(value, DictConfig):
-            _check_missing(value, f"{full}.")
+        try:
+            value = cfg[key]
+        except InterpolationResolutionError as e:
+            raise ConfigError(f"invalid value for '{full}': {e}.") from e
+        if isinstance(value, DictConfig | ListConfig):
+            _check_resolvable(value, f"{full}.")
 
 
 def _allowed_keys(inner: OmegaConfBaseException) -> list[str]:

@@ -119,8 +119,7 @@ class _SceneSink:
     """
 
     def __init__(self, tmp: Path):
-        self.files = DatasetWriter(tmp, name=SOURCE, source=SOURCE)
-        self.files.tmp = tmp  # only its file writers are used; publishing stays with the parent's writer
+        self.files = DatasetWriter.files_into(tmp)  # publishing stays with the parent's writer
         self.rows: list[tuple[str, dict]] = []
 
     def add(self, table: str, **row) -> None:
@@ -139,12 +138,12 @@ class _SceneSink:
         self.files.write_lidar(rel, points_N4)
 
 
-def _scene_job(cfg: SynthConfig, index: int, tmp: Path, split: str, horizon: int) -> tuple[str, list, int]:
-    """Generate, render and write scene ``index``; returns (scenario, table rows, QA count)."""
+def _scene_job(cfg: SynthConfig, index: int, tmp: Path, split: str, horizon: int) -> tuple[dict, list, int]:
+    """Generate, render and write scene ``index``; returns (scenario facts, table rows, QA count)."""
     scene = generate_scene(cfg, index)
     sink = _SceneSink(tmp)
     n_qa = _write_scene(sink, cfg, scene, split, horizon)
-    return scene.scenario, sink.rows, n_qa
+    return {"scenario": scene.scenario, **scene.meta}, sink.rows, n_qa
 
 
 def _write_scene(w: _SceneSink, cfg: SynthConfig, scene: Scene, split: str, horizon: int) -> int:
@@ -217,6 +216,14 @@ def _write_scene(w: _SceneSink, cfg: SynthConfig, scene: Scene, split: str, hori
     return len(rows)
 
 
+def _usable_cpus() -> int:
+    """CPUs this process may run on (a Ray worker or a cgroup may allow fewer than the machine has)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 def build(cfg: Any, root: str | Path, source: str | None = None, overwrite: bool = False) -> Path:
     """Generate ``synthetic_mini`` at ``root`` (published atomically) and return ``root``.
 
@@ -241,7 +248,7 @@ def build(cfg: Any, root: str | Path, source: str | None = None, overwrite: bool
     n_val = num_val_scenes(cfg.num_scenes, cfg.val_fraction)
     t0 = time.perf_counter()
     scenarios = []
-    workers = min(cfg.num_scenes, cfg.num_workers or os.cpu_count() or 1)
+    workers = min(cfg.num_scenes, cfg.num_workers or _usable_cpus())
     with DatasetWriter(root, name=cfg.name, source=SOURCE, overwrite=overwrite) as w:
         assert w.tmp is not None
         jobs = [
@@ -254,18 +261,21 @@ def build(cfg: Any, root: str | Path, source: str | None = None, overwrite: bool
                 results = list(pool.map(_scene_job, *zip(*jobs, strict=True)))
         else:
             results = [_scene_job(*job) for job in jobs]
-        for (_, i, _, split, _), (scenario, rows, n_qa) in zip(jobs, results, strict=True):
+        for (_, i, _, split, _), (facts, rows, n_qa) in zip(jobs, results, strict=True):
             for table, row in rows:
                 w.add(table, **row)
-            scenarios.append(scenario)
-            log.info("synthetic_mini: scene-%04d (%s, %s) %d QA", i, scenario, split, n_qa)
+            scenarios.append(facts)
+            log.info("synthetic_mini: scene-%04d (%s, %s) %d QA", i, facts["scenario"], split, n_qa)
         log.info("synthetic_mini: %d scenes in %.1f s (%d workers)", cfg.num_scenes, time.perf_counter() - t0, workers)
         w.extra_meta["generator"] = {
             "name": SOURCE,
             "version": GENERATOR_VERSION,
-            "config": {k: v for k, v in asdict(cfg).items() if k not in ("root", "builder", "summarizer", "num_workers")},
+            "config": {
+                k: v for k, v in asdict(cfg).items() if k not in ("root", "builder", "summarizer", "num_workers")
+            },
             "resolution": [cfg.width, cfg.height],
-            "scenarios": scenarios,
+            "scenarios": [f["scenario"] for f in scenarios],
+            "scene_facts": {f"scene-{i:04d}": f for i, f in enumerate(scenarios)},
             "val_scenes": [f"scene-{i:04d}" for i in range(cfg.num_scenes - n_val, cfg.num_scenes)],
             "plan_horizon_frames": horizon,
             "lidar_mount": list(LIDAR_MOUNT),

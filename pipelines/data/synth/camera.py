@@ -23,7 +23,6 @@ RIG = {
     "CAM_BACK_LEFT": ((1.05, 0.48, 1.56), 110.0, 1256.7),
     "CAM_FRONT_LEFT": ((1.52, 0.49, 1.51), 55.0, 1272.6),
 }
-assert tuple(RIG) == CAMERAS
 LIDAR_MOUNT = (0.94, 0.0, 1.84)
 """LiDAR origin on the ego (nuScenes' LIDAR_TOP)."""
 
@@ -51,15 +50,20 @@ class Camera:
         d = np.stack([(j - self.cx) / self.fx, (i - self.cy) / self.fy, np.ones_like(j)], -1)
         return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
-    @cached_property
-    def half_fov(self) -> float:
-        """Angle between the optical axis and the farthest pixel ray (for culling)."""
-        return float(np.arccos(self.rays_cam_HW3[..., 2].min()))
+    def frustum_planes(self, rows: slice, cols: slice) -> np.ndarray:
+        """[4, 3] inward unit normals (camera frame) of the frustum through a pixel block's outer edges."""
+        a0, a1 = (cols.start - self.cx) / self.fx, (cols.stop - self.cx) / self.fx
+        b0, b1 = (rows.start - self.cy) / self.fy, (rows.stop - self.cy) / self.fy
+        # Inside means a0 <= x/z <= a1 and b0 <= y/z <= b1.
+        n = np.array([[1.0, 0.0, -a0], [-1.0, 0.0, a1], [0.0, 1.0, -b0], [0.0, -1.0, b1]])
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
 def make_rig(width: int, height: int) -> list[Camera]:
+    """The 6 cameras in the layout's ``CAMERAS`` order, intrinsics scaled to width x height."""
     out = []
-    for name, (xyz, yaw_deg, fx) in RIG.items():
+    for name in CAMERAS:
+        xyz, yaw_deg, fx = RIG[name]
         yaw = np.deg2rad(yaw_deg)
         forward = np.array([np.cos(yaw), np.sin(yaw), 0.0])
         right = np.array([np.sin(yaw), -np.cos(yaw), 0.0])

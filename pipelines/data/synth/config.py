@@ -93,6 +93,7 @@ def validate(cfg: SynthConfig) -> None:
         _check(isinstance(getattr(cfg, key), int) and getattr(cfg, key) >= 1, key, ">= 1", getattr(cfg, key))
     for key in ("width", "height"):
         _check(isinstance(getattr(cfg, key), int) and getattr(cfg, key) >= 16, key, ">= 16 pixels", getattr(cfg, key))
+    _check(isinstance(cfg.seed, int) and cfg.seed >= 0, "seed", ">= 0", cfg.seed)
     _check(cfg.frame_rate_hz > 0, "frame_rate_hz", "> 0", cfg.frame_rate_hz)
     _check(0 <= cfg.val_fraction < 1, "val_fraction", "in [0, 1)", cfg.val_fraction)
     _check(0 <= cfg.parked_fraction <= 1, "parked_fraction", "in [0, 1]", cfg.parked_fraction)

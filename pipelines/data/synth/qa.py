@@ -20,9 +20,10 @@ QA, which mirrors the paper's example. Answer formats (evaluation parses them):
   decision label in ``gt["decision"]`` (rules in ``pipelines.data.synth.planning``).
 - ``traj`` (``trajectory_prediction``): "[PT, [x, y, z, qx, qy, qz, qw], ...]".
 
-Grounding referents are unambiguous in their camera: their "{colour} {noun}" phrase, or failing
-that the phrase plus "on the left / in the middle / on the right" (box centre by image thirds),
-is unique among the camera's 2D boxes.
+Grounding questions name "the {colour} {noun} {on the left | in the middle | on the right}" (box
+centre by image thirds) and ask only about referents that phrase makes unambiguous: the colour
+and noun alone, or failing that together with the position, are unique among the camera's 2D
+boxes; and at least 30 % of the object is visible.
 """
 
 from __future__ import annotations
@@ -93,7 +94,7 @@ def _state(row: dict, kind: str) -> str:
         return "parked"
     if speed <= MOVING_SPEED:
         return "stopped"
-    return "moving in the same direction as the ego vehicle" if vx > 0 else "moving towards the ego vehicle"
+    return "moving in the same direction as the ego vehicle" if vx > 0 else "moving in the opposite direction"
 
 
 class _Records:
@@ -212,8 +213,14 @@ def _grounding(rec: _Records, ft: FrameTruth, rng: np.random.Generator, per_task
             "in the ego frame.",
             answer,
             [cam],
-            {"instance_id": r["instance_id"], "camera": cam, "center": c, "size": s, "yaw": b3["yaw"],
-             "referent": phrase},
+            {
+                "instance_id": r["instance_id"],
+                "camera": cam,
+                "center": c,
+                "size": s,
+                "yaw": b3["yaw"],
+                "referent": phrase,
+            },
         )
 
 
@@ -235,11 +242,15 @@ def _plan(rec: _Records, ft: FrameTruth, horizon: int) -> None:
         return
     secs = horizon / truth.rate_hz
     obstacle = planning.lane_obstacle(ft.boxes3d)
-    obstacle_gt = None if obstacle is None else {
-        "instance_id": obstacle["instance_id"],
-        "center": obstacle["center"],
-        "distance_m": float(np.hypot(obstacle["center"][0], obstacle["center"][1])),
-    }
+    obstacle_gt = (
+        None
+        if obstacle is None
+        else {
+            "instance_id": obstacle["instance_id"],
+            "center": obstacle["center"],
+            "distance_m": float(np.hypot(obstacle["center"][0], obstacle["center"][1])),
+        }
+    )
     views = list(CAMERAS)
     label, facts = planning.speed_decision(poses, f, horizon, truth.rate_hz)
     if label is not None:

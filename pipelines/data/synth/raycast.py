@@ -190,6 +190,10 @@ def _sph_hits(o_3, d_R3, prims: Primitives) -> tuple[np.ndarray, np.ndarray]:
     return t, (disc >= 0) & (t > _EPS)
 
 
+RAY_CHUNK = 1 << 15
+"""Rays per pass: bounds the [R, P] temporaries (~4 MB each at 32 primitives) for large images."""
+
+
 def cast(
     origin_3: np.ndarray,
     dirs_R3: np.ndarray,
@@ -202,6 +206,22 @@ def cast(
     Hits farther than ``max_t`` count as sky. With ``num_actors`` > 0 the result also says,
     per ray and agent, whether the ray meets the agent ignoring occlusion (for visibility).
     """
+    if len(dirs_R3) <= RAY_CHUNK:
+        return _cast(origin_3, dirs_R3, prims, max_t, num_actors)
+    parts = [
+        _cast(origin_3, dirs_R3[i : i + RAY_CHUNK], prims, max_t, num_actors) for i in range(0, len(dirs_R3), RAY_CHUNK)
+    ]
+    cov = None if num_actors == 0 else np.concatenate([h.coverage_RA for h in parts])
+    return Hits(
+        *(
+            np.concatenate([getattr(h, f) for h in parts])
+            for f in ("t_R", "prim_R", "point_R3", "normal_R3", "local_R3")
+        ),
+        coverage_RA=cov,
+    )
+
+
+def _cast(origin_3: np.ndarray, dirs_R3: np.ndarray, prims: Primitives, max_t: float, num_actors: int) -> Hits:
     o = np.asarray(origin_3, dtype=np.float64)
     d = np.ascontiguousarray(dirs_R3, dtype=np.float32)
     n_rays = len(d)
@@ -277,16 +297,16 @@ def _surface(point_R3: np.ndarray, prim_R: np.ndarray, prims: Primitives) -> tup
 
 
 def cull(
-    prims: Primitives, origin_3: np.ndarray, max_t: float, forward_3: np.ndarray | None = None, half_fov: float = np.pi
+    prims: Primitives, origin_3: np.ndarray, max_t: float, planes_K3: np.ndarray | None = None
 ) -> tuple[Primitives, np.ndarray]:
-    """Primitives whose bounding sphere may meet a ray of the cone (forward, half_fov) within max_t."""
+    """Primitives whose bounding sphere lies within ``max_t`` of the origin and inside every plane.
+
+    ``planes_K3`` are inward unit normals of planes through the origin (a frustum or a wedge);
+    a sphere is kept unless it lies entirely on the outer side of one of them.
+    """
     centres, radii = prims.bounding_spheres()
     v = centres - np.asarray(origin_3)[None, :]
-    dist = np.linalg.norm(v, axis=1)
-    keep = dist - radii <= max_t
-    if forward_3 is not None and half_fov < np.pi / 2:
-        cos_a = (v @ np.asarray(forward_3)) / np.maximum(dist, 1e-9)
-        ang = np.arccos(np.clip(cos_a, -1.0, 1.0))
-        slack = np.arcsin(np.clip(radii / np.maximum(dist, 1e-9), 0.0, 1.0))
-        keep &= (dist <= radii) | (ang <= half_fov + slack)
+    keep = np.linalg.norm(v, axis=1) - radii <= max_t
+    if planes_K3 is not None and len(planes_K3):
+        keep &= (v @ np.asarray(planes_K3).T >= -radii[:, None]).all(axis=1)
     return prims.subset(keep)

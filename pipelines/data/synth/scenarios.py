@@ -17,6 +17,9 @@ footprints, grown by a margin, intersect anyone's over the clip).
 
 from __future__ import annotations
 
+from collections import Counter
+from dataclasses import dataclass, field
+
 import numpy as np
 
 from pipelines.data.synth.config import SynthConfig
@@ -102,6 +105,134 @@ def _obb_overlap(a, b) -> np.ndarray:
     return ~separated
 
 
+@dataclass(frozen=True)
+class _Spawn:
+    kind: str
+    colour: str
+    size: tuple[float, float, float]
+    motion: Motion
+    parked: bool = False
+
+
+@dataclass
+class _Script:
+    """What a scenario fixes before the random traffic: the ego, the road and the agents it needs."""
+
+    ego: Motion
+    lane: float
+    what: str
+    curvature: float = 0.0
+    crosswalks: tuple[float, ...] = ()
+    spawns: list[_Spawn] = field(default_factory=list)
+    meta: dict = field(default_factory=dict)
+
+
+def _pedestrian(rng: np.random.Generator, motion: Motion) -> _Spawn:
+    height = round(float(rng.uniform(1.6, 1.9)), 2)
+    return _Spawn("pedestrian", str(rng.choice(tuple(CLOTHING_COLOURS))), (0.5, 0.5, height), motion)
+
+
+def _script(rng: np.random.Generator, scenario: str, duration: float, rate_hz: float) -> _Script:
+    lane = float(rng.choice(EGO_LANES))
+    if scenario == "curve":
+        radius = float(rng.uniform(70.0, 90.0))
+        bend = float(rng.choice([-1.0, 1.0]))
+        v = float(rng.uniform(7.0, 9.0))
+        side = "left" if bend > 0 else "right"
+        what = f"the road bends {side} (radius {radius:.0f} m); the ego keeps {v:.1f} m/s"
+        script = _Script(Motion(0.0, lane, v), lane, what, curvature=bend / radius)
+        script.meta.update(radius_m=round(radius, 1), bend=side)
+    elif scenario == "stop":
+        v0 = float(rng.uniform(7.0, 9.0))
+        t_stop = float(rng.uniform(0.45, 0.6)) * duration
+        size = _size(rng, "car")
+        s_lead = v0 * t_stop / 2 + EGO_FRONT + float(rng.uniform(3.0, 5.0)) + size[0] / 2
+        zebra = s_lead + size[0] / 2 + 1.5
+        what = f"the ego brakes from {v0:.1f} m/s to a stop behind a car waiting at a zebra crossing"
+        script = _Script(Motion(0.0, lane, v0, accel=-v0 / t_stop, v_end=0.0), lane, what, crosswalks=(zebra,))
+        script.spawns.append(_Spawn("car", _colour(rng, "car"), size, Motion(s_lead, lane)))
+        for k, side in enumerate((1.0, -1.0)):
+            start = side * float(rng.uniform(7.5, 10.0))
+            script.spawns.append(_pedestrian(rng, Motion(zebra + 1.0 + 2.0 * k, start, vlat=-side * 1.2)))
+    elif scenario == "lane_change":
+        left = bool(rng.integers(2))
+        lane = EGO_LANES[1] if left else EGO_LANES[0]
+        v = float(rng.uniform(7.0, 9.0))
+        # Start on a frame so some planning windows hold the whole manoeuvre.
+        lc_start = max(1, round(0.25 * duration * rate_hz)) / rate_hz
+        lc_duration = 1.5
+        offset = LANE_WIDTH if left else -LANE_WIDTH
+        size = _size(rng, "truck")
+        s_obs = v * (lc_start + lc_duration) + EGO_FRONT + float(rng.uniform(6.0, 12.0)) + size[0] / 2
+        side = "left" if left else "right"
+        what = f"a stopped truck blocks the ego lane; the ego changes lanes to the {side} at {v:.1f} m/s"
+        ego = Motion(0.0, lane, v, lc_offset=offset, lc_start=lc_start, lc_duration=lc_duration)
+        script = _Script(ego, lane, what)
+        script.spawns.append(_Spawn("truck", _colour(rng, "truck"), size, Motion(s_obs, lane)))
+        script.meta.update(direction=side, lc_start_s=lc_start, lc_duration_s=lc_duration)
+    elif scenario == "start":
+        v0 = float(rng.uniform(0.0, 1.0))
+        a = float(rng.uniform(1.5, 2.2))
+        ego = Motion(0.0, lane, v0, accel=a, v_end=float(rng.uniform(8.0, 10.0)))
+        size = _size(rng, "car")
+        s_lead = EGO_FRONT + float(rng.uniform(6.0, 9.0)) + size[0] / 2
+        what = f"the ego pulls away from {v0:.1f} m/s behind a car that starts moving"
+        script = _Script(ego, lane, what)
+        lead = Motion(s_lead, lane, 0.5, accel=a + 0.6, v_end=12.0)  # always pulls away from the ego
+        script.spawns.append(_Spawn("car", _colour(rng, "car"), size, lead))
+    elif scenario == "follow":
+        v0 = float(rng.uniform(9.0, 11.0))
+        v_lead = float(rng.uniform(3.0, 5.0))
+        a = float(rng.uniform(1.5, 2.5))
+        size = _size(rng, "car")
+        closing = (v0 - v_lead) ** 2 / (2 * a)  # gap the ego eats while braking to the lead's speed
+        s_lead = EGO_FRONT + closing + float(rng.uniform(6.0, 10.0)) + size[0] / 2
+        what = f"the ego brakes from {v0:.1f} m/s to follow a car driving {v_lead:.1f} m/s"
+        script = _Script(Motion(0.0, lane, v0, accel=-a, v_end=v_lead), lane, what)
+        script.spawns.append(_Spawn("car", _colour(rng, "car"), size, Motion(s_lead, lane, v_lead)))
+    else:  # cruise
+        v = float(rng.uniform(7.0, 10.0))
+        script = _Script(Motion(0.0, lane, v), lane, f"straight road; the ego keeps {v:.1f} m/s")
+    if scenario in ("curve", "cruise") and rng.random() < 0.5:
+        size = _size(rng, "car")
+        s_lead = EGO_FRONT + float(rng.uniform(30.0, 45.0)) + size[0] / 2
+        script.spawns.append(_Spawn("car", _colour(rng, "car"), size, Motion(s_lead, lane, script.ego.v0)))
+    ego = script.ego
+    script.meta.update(ego_speed_mps=round(ego.v0, 2), ego_accel_mps2=round(ego.accel, 2), ego_lane_offset_m=lane)
+    return script
+
+
+def _traffic(rng: np.random.Generator, cfg: SynthConfig, free_lanes: list[float], s_lo: float, s_hi: float):
+    """Candidate spawns for one other vehicle: parked at the kerb or driving in a free lane (yields retries)."""
+    kind = str(rng.choice(["car", "truck", "bus"], p=[0.65, 0.2, 0.15]))
+    size, colour = _size(rng, kind), _colour(rng, kind)
+    parked = bool(rng.random() < cfg.parked_fraction)
+    for _attempt in range(30):
+        s0 = float(rng.uniform(s_lo, s_hi))
+        if parked:
+            side = float(rng.choice([-1.0, 1.0]))
+            motion = Motion(s0, side * PARKING_L, facing=0.0 if side < 0 else np.pi)
+        else:
+            lat = float(rng.choice(free_lanes))
+            speed = float(rng.uniform(6.0, 11.0))
+            motion = Motion(s0, lat, speed if lat < 0 else -speed)
+        yield _Spawn(kind, colour, size, motion, parked)
+
+
+def _sidewalk_pedestrian(rng: np.random.Generator, s_lo: float, s_hi: float):
+    """Candidate spawns for one pedestrian walking along or standing on a sidewalk (yields retries)."""
+    height = round(float(rng.uniform(1.6, 1.9)), 2)
+    colour = str(rng.choice(tuple(CLOTHING_COLOURS)))
+    for _attempt in range(30):
+        lat = float(rng.choice([-1.0, 1.0])) * float(rng.uniform(10.4, 12.2))
+        s0 = float(rng.uniform(s_lo, s_hi))
+        if rng.random() < 0.7:
+            motion = Motion(s0, lat, float(rng.choice([-1.0, 1.0])) * float(rng.uniform(1.0, 1.6)))
+        else:
+            motion = Motion(s0, lat, facing=float(rng.uniform(-np.pi, np.pi)))
+        yield _Spawn("pedestrian", colour, (0.5, 0.5, height), motion)
+
+
 def generate_scene(cfg: SynthConfig, index: int) -> Scene:
     """Scene ``index`` of the dataset configured by ``cfg`` (pure function of cfg.seed and index)."""
     rng = np.random.default_rng([cfg.seed, index])
@@ -109,143 +240,50 @@ def generate_scene(cfg: SynthConfig, index: int) -> Scene:
     times = np.arange(cfg.num_frames, dtype=np.float64) / cfg.frame_rate_hz
     duration = max(float(times[-1]), 1.0 / cfg.frame_rate_hz)
     scene_id = f"scene-{index:04d}"
-    actors: list[Actor] = []
-    counter = {"car": 0, "truck": 0, "bus": 0, "pedestrian": 0}
+    script = _script(rng, scenario, duration, cfg.frame_rate_hz)
+    road = Road(script.curvature, script.crosswalks)
 
-    def new_actor(kind: str, colour: str, size, motion: Motion, parked: bool = False) -> Actor:
-        counter[kind] += 1
-        parts = pedestrian_parts(size[2], colour) if kind == "pedestrian" else vehicle_parts(kind, size, colour)
-        return Actor(f"{scene_id}-{kind}-{counter[kind]:02d}", kind, colour, size, motion, parts, parked)
-
-    # --- the ego and the agents its scenario needs
-    curvature = 0.0
-    crosswalks: tuple[float, ...] = ()
-    lane = float(rng.choice(EGO_LANES))
-    scripted: list[tuple[str, str, tuple, Motion, bool]] = []  # kind, colour, size, motion, parked
-    crossers: list[Motion] = []
-    meta: dict = {}
-    if scenario == "curve":
-        radius = float(rng.uniform(70.0, 90.0))
-        curvature = float(rng.choice([-1.0, 1.0])) / radius
-        v = float(rng.uniform(7.0, 9.0))
-        ego = Motion(0.0, lane, v)
-        meta.update(radius_m=round(radius, 1), bend="left" if curvature > 0 else "right")
-        what = f"the road bends {meta['bend']} (radius {radius:.0f} m); the ego keeps {v:.1f} m/s"
-    elif scenario == "stop":
-        v0 = float(rng.uniform(7.0, 9.0))
-        t_stop = float(rng.uniform(0.45, 0.6)) * duration
-        ego = Motion(0.0, lane, v0, accel=-v0 / t_stop, v_end=0.0)
-        size = _size(rng, "car")
-        s_lead = v0 * t_stop / 2 + EGO_FRONT + float(rng.uniform(3.0, 5.0)) + size[0] / 2
-        scripted.append(("car", _colour(rng, "car"), size, Motion(s_lead, lane), False))
-        crosswalks = (s_lead + size[0] / 2 + 1.5,)
-        for k in range(2):
-            side = 1.0 if k == 0 else -1.0
-            crossers.append(
-                Motion(crosswalks[0] + 1.0 + 2.0 * k, side * float(rng.uniform(7.5, 10.0)), vlat=-side * 1.2)
-            )
-        what = f"the ego brakes from {v0:.1f} m/s to a stop behind a car waiting at a zebra crossing"
-    elif scenario == "lane_change":
-        left = bool(rng.integers(2))
-        lane = EGO_LANES[1] if left else EGO_LANES[0]
-        v = float(rng.uniform(7.0, 9.0))
-        lc_start = max(1, round(0.25 * duration * cfg.frame_rate_hz)) / cfg.frame_rate_hz
-        lc_duration = 1.5
-        ego = Motion(0.0, lane, v, lc_offset=LANE_WIDTH if left else -LANE_WIDTH, lc_start=lc_start,
-                     lc_duration=lc_duration)
-        size = _size(rng, "truck")
-        s_obs = v * (lc_start + lc_duration) + EGO_FRONT + float(rng.uniform(6.0, 12.0)) + size[0] / 2
-        scripted.append(("truck", _colour(rng, "truck"), size, Motion(s_obs, lane), False))
-        meta.update(direction="left" if left else "right", lc_start_s=lc_start, lc_duration_s=lc_duration)
-        what = f"a stopped truck blocks the ego lane; the ego changes lanes to the {meta['direction']} at {v:.1f} m/s"
-    elif scenario == "start":
-        v0 = float(rng.uniform(0.0, 1.0))
-        a = float(rng.uniform(1.5, 2.2))
-        ego = Motion(0.0, lane, v0, accel=a, v_end=float(rng.uniform(8.0, 10.0)))
-        size = _size(rng, "car")
-        s_lead = EGO_FRONT + float(rng.uniform(6.0, 9.0)) + size[0] / 2
-        scripted.append(("car", _colour(rng, "car"), size, Motion(s_lead, lane, 0.5, accel=a + 0.6, v_end=12.0), False))
-        what = f"the ego pulls away from {v0:.1f} m/s behind a car that starts moving"
-    elif scenario == "follow":
-        v0 = float(rng.uniform(9.0, 11.0))
-        v_lead = float(rng.uniform(3.0, 5.0))
-        a = float(rng.uniform(1.5, 2.5))
-        ego = Motion(0.0, lane, v0, accel=-a, v_end=v_lead)
-        size = _size(rng, "car")
-        closing = (v0 - v_lead) ** 2 / (2 * a)
-        s_lead = EGO_FRONT + closing + float(rng.uniform(6.0, 10.0)) + size[0] / 2
-        scripted.append(("car", _colour(rng, "car"), size, Motion(s_lead, lane, v_lead), False))
-        what = f"the ego brakes from {v0:.1f} m/s to follow a car driving {v_lead:.1f} m/s"
-    else:  # cruise
-        v = float(rng.uniform(7.0, 10.0))
-        ego = Motion(0.0, lane, v)
-        what = f"straight road; the ego keeps {v:.1f} m/s"
-    if scenario in ("curve", "cruise") and rng.random() < 0.5:
-        size = _size(rng, "car")
-        gap = float(rng.uniform(30.0, 45.0))
-        scripted.append(("car", _colour(rng, "car"), size, Motion(EGO_FRONT + gap + size[0] / 2, lane, ego.v0), False))
-
-    road = Road(curvature, crosswalks)
     placer = _Placer(road, np.linspace(0.0, duration, 4 * max(cfg.num_frames, 2)))
-    ego_state = ego.state(road, placer.times)
+    ego_state = script.ego.state(road, placer.times)
     placer.add(placer.footprint(ego_state, EGO_SIZE, EGO_CENTER_X))
-    ego_lanes = {lane, lane + ego.lc_offset}
-    for kind, colour, size, motion, parked in scripted:
-        if placer.try_add(motion, size):
-            actors.append(new_actor(kind, colour, size, motion, parked))
-    for motion in crossers:
-        height = round(float(rng.uniform(1.6, 1.9)), 2)
-        size = (0.5, 0.5, height)
-        if placer.try_add(motion, size):
-            actors.append(new_actor("pedestrian", str(rng.choice(tuple(CLOTHING_COLOURS))), size, motion))
-
+    placed = [sp for sp in script.spawns if placer.try_add(sp.motion, sp.size)]
     s_end = float(ego_state.s_T.max())
     s_lo, s_hi = -40.0, s_end + 70.0
-
-    # --- other traffic: parked at the kerb or driving in lanes the ego never uses
-    free_lanes = [x for x in (*EGO_LANES, *ONCOMING_LANES) if x not in ego_lanes]
-    for _ in range(cfg.num_vehicles):
-        kind = str(rng.choice(["car", "truck", "bus"], p=[0.65, 0.2, 0.15]))
-        size, colour = _size(rng, kind), _colour(rng, kind)
-        parked = bool(rng.random() < cfg.parked_fraction)
-        for _attempt in range(30):
-            s0 = float(rng.uniform(s_lo, s_hi))
-            if parked:
-                side = float(rng.choice([-1.0, 1.0]))
-                motion = Motion(s0, side * PARKING_L, facing=0.0 if side < 0 else np.pi)
-            else:
-                lat = float(rng.choice(free_lanes))
-                speed = float(rng.uniform(6.0, 11.0))
-                motion = Motion(s0, lat, speed if lat < 0 else -speed)
-            if placer.try_add(motion, size):
-                actors.append(new_actor(kind, colour, size, motion, parked))
+    # Random traffic never uses the ego's lanes, so it cannot contradict the scenario's plan.
+    free_lanes = [
+        x for x in (*EGO_LANES, *ONCOMING_LANES) if x not in (script.lane, script.lane + script.ego.lc_offset)
+    ]
+    candidates = [_traffic(rng, cfg, free_lanes, s_lo, s_hi) for _ in range(cfg.num_vehicles)]
+    candidates += [_sidewalk_pedestrian(rng, -20.0, s_end + 50.0) for _ in range(cfg.num_pedestrians)]
+    for tries in candidates:
+        for sp in tries:  # the first candidate that fits; the generator then stops drawing
+            if placer.try_add(sp.motion, sp.size):
+                placed.append(sp)
                 break
 
-    for _ in range(cfg.num_pedestrians):
-        height = round(float(rng.uniform(1.6, 1.9)), 2)
-        size = (0.5, 0.5, height)
-        colour = str(rng.choice(tuple(CLOTHING_COLOURS)))
-        for _attempt in range(30):
-            side = float(rng.choice([-1.0, 1.0]))
-            lat = side * float(rng.uniform(10.4, 12.2))
-            s0 = float(rng.uniform(-20.0, s_end + 50.0))
-            if rng.random() < 0.7:
-                motion = Motion(s0, lat, float(rng.choice([-1.0, 1.0])) * float(rng.uniform(1.0, 1.6)))
-            else:
-                motion = Motion(s0, lat, facing=float(rng.uniform(-np.pi, np.pi)))
-            if placer.try_add(motion, size):
-                actors.append(new_actor("pedestrian", colour, size, motion))
-                break
+    counter: Counter = Counter()
+    actors = []
+    for sp in placed:
+        counter[sp.kind] += 1
+        parts = (
+            pedestrian_parts(sp.size[2], sp.colour)
+            if sp.kind == "pedestrian"
+            else vehicle_parts(sp.kind, sp.size, sp.colour)
+        )
+        iid = f"{scene_id}-{sp.kind}-{counter[sp.kind]:02d}"
+        actors.append(Actor(iid, sp.kind, sp.colour, sp.size, sp.motion, parts, sp.parked))
 
     props, lamps = _scenery(rng, road, s_lo - 30.0, s_hi + 50.0)
     elev, azim = np.deg2rad(rng.uniform(30.0, 60.0)), rng.uniform(-np.pi, np.pi)
     sun = np.array([np.cos(elev) * np.cos(azim), np.cos(elev) * np.sin(azim), np.sin(elev)])
     n_veh = sum(a.kind != "pedestrian" for a in actors)
     description = (
-        f"{scenario}: {what}; {n_veh} vehicles, {len(actors) - n_veh} pedestrians, "
+        f"{scenario}: {script.what}; {n_veh} vehicles, {len(actors) - n_veh} pedestrians, "
         f"{sum(p.kind == 'building' for p in props)} buildings, {sum(p.kind == 'tree' for p in props)} trees"
     )
-    return Scene(scene_id, index, scenario, description, road, ego, actors, props, times, sun, lamps, meta)
+    return Scene(
+        scene_id, index, scenario, description, road, script.ego, actors, props, times, sun, lamps, script.meta
+    )
 
 
 def _scenery(rng: np.random.Generator, road: Road, s_lo: float, s_hi: float) -> tuple[list[Prop], np.ndarray]:

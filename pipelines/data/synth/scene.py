@@ -95,7 +95,7 @@ class Scene:
     lamps_L3: np.ndarray
     """Street-lamp positions (world), the light sources at night."""
     meta: dict = field(default_factory=dict)
-    """Scenario facts (speeds, lane change timing) recorded in the scene description."""
+    """Scenario facts (ego speed and lane, bend, lane-change timing) for ``dataset.json``."""
 
     @cached_property
     def ego_state(self) -> State:

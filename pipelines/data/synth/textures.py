@@ -90,7 +90,9 @@ def surface(hits: Hits, prims: Primitives, road: Road, seed: int) -> Surface:
     emis = np.zeros((n, 3))
     is_ground = hits.prim_R == GROUND
     if is_ground.any():
-        albedo[is_ground], refl[is_ground] = ground(road, hits.point_R3[is_ground, 0], hits.point_R3[is_ground, 1], seed)
+        albedo[is_ground], refl[is_ground] = ground(
+            road, hits.point_R3[is_ground, 0], hits.point_R3[is_ground, 1], seed
+        )
     obj = np.flatnonzero(hits.prim_R >= 0)
     if not len(obj):
         return Surface(albedo, refl, emis)
@@ -163,7 +165,7 @@ def surface(hits: Hits, prims: Primitives, road: Road, seed: int) -> Surface:
         pillar = (axis[m] == 1) & (np.mod(u[m], 1.3) < 0.14)
         glass = band & ~pillar
         out[m] = np.where(glass[:, None], GLASS, col[m] * np.where(z[m] < 0.35, 0.5, 1.0)[:, None])
-        glow[m] = np.where(glass[:, None], [0.6, 0.6, 0.5], 0.0)
+        glow[m] = np.where(glass[:, None], [0.45, 0.45, 0.38], 0.0)  # lit cabin
         refl[obj[m]] = np.where(glass, 0.05, refl[obj[m]])
 
     m = mat == Material.CARGO

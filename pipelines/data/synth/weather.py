@@ -54,7 +54,7 @@ def fog(gb: GBuffer, visibility_m: float) -> np.ndarray:
 def night(gb: GBuffer, scene: Scene, ego2world_44: np.ndarray) -> np.ndarray:
     p = gb.point_HW3.reshape(-1, 3)
     nrm = gb.normal_HW3.reshape(-1, 3)
-    light = np.full((len(p), 3), 0.03)  # moonlight
+    light = np.full((len(p), 3), 0.02)  # moonlight
     fwd = ego2world_44[:3, 0]
     for pos in HEADLIGHTS_EGO:
         src = ego2world_44[:3, :3] @ np.asarray(pos) + ego2world_44[:3, 3]
@@ -64,14 +64,14 @@ def night(gb: GBuffer, scene: Scene, ego2world_44: np.ndarray) -> np.ndarray:
         cone = np.clip((cos_a - np.cos(np.deg2rad(35))) / (np.cos(np.deg2rad(8)) - np.cos(np.deg2rad(35))), 0, 1)
         # Headlights graze the road; a floor on the incidence term keeps the lit patch visible.
         lam = 0.3 + 0.7 * np.clip(-(nrm * v).sum(1) / d, 0, 1)
-        light += (1.6 * cone * lam / (1 + (d / 14.0) ** 2))[:, None] * [1.0, 1.0, 0.92]
+        light += (1.3 * cone * lam / (1 + (d / 14.0) ** 2))[:, None] * [1.0, 1.0, 0.92]
     lamp_light = np.zeros(len(p))
     for lamp in scene.lamps_L3:
         vx, vy, vz = p[:, 0] - lamp[0], p[:, 1] - lamp[1], p[:, 2] - lamp[2]
         d2 = np.maximum(vx * vx + vy * vy + vz * vz, 1e-6)
         lam = np.clip(-(nrm[:, 0] * vx + nrm[:, 1] * vy + nrm[:, 2] * vz), 0, None) / np.sqrt(d2)
-        lamp_light += lam / (1 + d2 / 49.0)
-    light += 1.4 * lamp_light[:, None] * [1.0, 0.85, 0.6]
+        lamp_light += lam / (1 + d2 / 25.0)
+    light += 0.8 * lamp_light[:, None] * [1.0, 0.85, 0.6]
     rgb = gb.albedo_HW3.reshape(-1, 3) * light + 0.9 * gb.emissive_HW3.reshape(-1, 3)
     rgb = rgb.reshape(gb.albedo_HW3.shape)
     up = np.clip(gb.dirs_HW3[..., 2:3], 0.0, 1.0)
@@ -80,8 +80,13 @@ def night(gb: GBuffer, scene: Scene, ego2world_44: np.ndarray) -> np.ndarray:
 
 
 def render_weather(
-    weather: str, gb: GBuffer, clear_rgb: np.ndarray, scene: Scene, ego2world_44: np.ndarray,
-    visibility_m: float, rng: np.random.Generator,
+    weather: str,
+    gb: GBuffer,
+    clear_rgb: np.ndarray,
+    scene: Scene,
+    ego2world_44: np.ndarray,
+    visibility_m: float,
+    rng: np.random.Generator,
 ) -> np.ndarray:
     """[H, W, 3] float RGB in [0, 1] of one weather variant."""
     if weather == "clear":
