@@ -5,7 +5,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +33,7 @@ from gdwm.executor import (
 )
 from gdwm.progress import ProgressActor, render
 from gdwm.term import console
-from gdwm.tracking import RunGuard, call, open_tracking
+from gdwm.tracking import AliveExcept, RunGuard, call, open_tracking, process_owner
 
 
 class RunError(Exception):
@@ -140,7 +142,19 @@ def init_ray(cfg: DictConfig) -> bool:
         ray.init(address=c.address, **kwargs)
     else:
         ray.init(num_cpus=c.num_cpus, num_gpus=c.num_gpus, **kwargs)
+    if threading.current_thread() is threading.main_thread():
+        # ray.init's own SIGTERM handler exits 1; exit 143 as a terminated process should (finally shuts Ray).
+        signal.signal(signal.SIGTERM, _sigterm)
     return True
+
+
+_TERMINATED: list[int] = []
+
+
+def _sigterm(signum: int, _frame) -> None:
+    # Raising here would surface inside ray.wait, which turns any exception into SystemExit(1): record it and
+    # let the poll loop exit 143 between waits.
+    _TERMINATED.append(signum)
 
 
 def _run_key(pipe_name: str, order: list[str], rows: list[PlanRow]) -> str:
@@ -187,6 +201,10 @@ def run_pipeline(cfg: DictConfig, dry_run: bool = False, live: bool | None = Non
                 raise StageFailed(next(iter(summary.failed)), {None: next(iter(summary.failed.values()))})
     except StageFailed:
         pass  # the parent run is FAILED by the guard; the caller reports from the summary
+    except BaseException:
+        # Ctrl-C / SIGTERM: the stage runs this driver owns end KILLED now, not at the next reconcile.
+        call(sink, "reconcile", AliveExcept(process_owner()))
+        raise
     finally:
         close()
         if started:
@@ -219,6 +237,8 @@ def _execute_dag(pipe, order, cfg, env: RunEnv, summary: RunSummary, progress, l
     show_live = show_live and console.is_terminal
 
     def poll() -> None:
+        if _TERMINATED:
+            raise SystemExit(128 + _TERMINATED[0])
         ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=0.5)
         for ref in ready:
             name = pending.pop(ref)

@@ -3,7 +3,7 @@
 GDWM_TEST_DIR      every execution appends "<stage> <scene>" to executions.log here
 GDWM_TEST_KILL     "stage:scene" (or "stage:step=N" for training) — SIGKILL the worker once (marker file)
 GDWM_TEST_FAIL     "stage:scene" — raise ValueError in that scene
-GDWM_TEST_BLOCK    "stage" — wait until the file GDWM_TEST_DIR/release exists (lets a test kill the driver)
+GDWM_TEST_BLOCK    "stage" or "stage:step=N" — wait until GDWM_TEST_DIR/release exists (a test kills the driver)
 """
 
 from __future__ import annotations
@@ -44,9 +44,13 @@ def _inject(ctx: StageContext) -> None:
     if os.environ.get("GDWM_TEST_FAIL") == target:
         raise ValueError(f"injected failure in {target}")
     if os.environ.get("GDWM_TEST_BLOCK") == ctx.name:
-        (_test_dir() / f"blocked-{ctx.name}").touch()
-        while not (_test_dir() / "release").exists():
-            time.sleep(0.1)
+        _block(ctx.name)
+
+
+def _block(name: str) -> None:
+    (_test_dir() / f"blocked-{name}").touch()
+    while not (_test_dir() / "release").exists():
+        time.sleep(0.1)
 
 
 def _setup(cfg: dict) -> dict:
@@ -87,6 +91,8 @@ def _train_loop(s) -> None:
         s.report(step, {"loss": float(1.0 / (step + 1)), "start": float(start)}, state={"step": step, "w": w})
         if kill == f"{s.config['stage']}:step={step}" and _once(f"{s.config['stage']}-step"):
             os.kill(os.getpid(), signal.SIGKILL)
+        if os.environ.get("GDWM_TEST_BLOCK") == f"{s.config['stage']}:step={step}":
+            _block(s.config["stage"])
 
 
 def _train_stage(ctx: StageContext, steps: int, target: float) -> None:

@@ -66,6 +66,14 @@ class Toy:
         return mlflow.MlflowClient(f"sqlite:///{self.work.resolve()}/mlflow.db")
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+
+
 def _ok(r: subprocess.CompletedProcess) -> None:
     assert r.returncode == 0, f"exit {r.returncode}\nSTDOUT\n{r.stdout[-3000:]}\nSTDERR\n{r.stderr[-5000:]}"
 
@@ -231,7 +239,7 @@ def test_sigkilled_driver_resumes_without_duplicates(tmp_path):
     toy = Toy(tmp_path)
     proc = subprocess.Popen(
         toy.args(),
-        env=toy.env(GDWM_TEST_BLOCK="lora"),
+        env=toy.env(GDWM_TEST_BLOCK="lora:step=1"),
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         start_new_session=True,
@@ -244,8 +252,17 @@ def test_sigkilled_driver_resumes_without_duplicates(tmp_path):
             time.sleep(0.2)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
+        # Ray fate-shares workers with their driver: the blocked lora worker must die too.
+        worker = int(
+            next(
+                line for line in (tmp_path / "executions.log").read_text().splitlines() if line.startswith("lora ")
+            ).split()[3]
+        )
+        deadline = time.time() + 60
+        while _alive(worker):
+            assert time.time() < deadline, f"lora worker {worker} outlived its SIGKILLed driver"
+            time.sleep(0.2)
     finally:
-        (tmp_path / "release").touch()  # frees a worker Ray's fate-sharing might have missed
         if proc.poll() is None:
             proc.kill()
     assert {r.info.status for r in toy.runs()} >= {"RUNNING"}  # lora's run was left behind
@@ -259,3 +276,33 @@ def test_sigkilled_driver_resumes_without_duplicates(tmp_path):
     per_key = Counter(r.data.tags["gdwm.cache_key"] for r in toy.runs())
     assert max(per_key.values()) == 1
     assert len(toy.runs("run")) == 1  # the same parent run continued
+    # lora resumed from its checkpoint of step 1: step 0 was logged once, the second attempt started at 2
+    lora = next(r for r in toy.runs() if r.data.tags["gdwm.stage"] == "lora")
+    client = toy.client()
+    assert [m.step for m in client.get_metric_history(lora.info.run_id, "loss")].count(0) == 1
+    assert sorted({m.value for m in client.get_metric_history(lora.info.run_id, "start")}) == [0.0, 2.0]
+
+
+def test_sigterm_ends_every_run_killed(tmp_path):
+    toy = Toy(tmp_path)
+    proc = subprocess.Popen(
+        toy.args(),
+        env=toy.env(GDWM_TEST_BLOCK="tokenizer"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        deadline = time.time() + 240
+        while not (tmp_path / "blocked-tokenizer").exists():
+            assert proc.poll() is None and time.time() < deadline, "tokenizer never started"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 143, err[-2000:]
+    status = {r.data.tags.get("gdwm.stage", "parent"): r.info.status for r in toy.runs() + toy.runs("run")}
+    assert status == {"reconstruct": "FINISHED", "distill": "FINISHED", "tokenizer": "KILLED", "parent": "KILLED"}

@@ -12,7 +12,14 @@ from gdwm.tracking.backend import (
     open_tracking,
 )
 from gdwm.tracking.guard import RunGuard
-from gdwm.tracking.owner import OWNER_TAG, RECONCILED_TAG, owner_is_alive, parse_owner, process_owner
+from gdwm.tracking.owner import (
+    OWNER_TAG,
+    RECONCILED_TAG,
+    AliveExcept,
+    owner_is_alive,
+    parse_owner,
+    process_owner,
+)
 from gdwm.tracking.params import batches, flatten_params, truncate
 from gdwm.tracking.tracker import Tracker
 
@@ -21,6 +28,7 @@ __all__ = [
     "OWNER_TAG",
     "RECONCILED_TAG",
     "STAGE_TAG",
+    "AliveExcept",
     "RunGuard",
     "Sink",
     "Tracker",

@@ -43,3 +43,13 @@ def owner_is_alive(owner: str) -> bool:
         return proc.status() != psutil.STATUS_ZOMBIE and abs(proc.create_time() - start) <= _START_TOLERANCE_S
     except (psutil.NoSuchProcess, psutil.ZombieProcess):
         return False
+
+
+class AliveExcept:
+    """``is_alive`` for ``reconcile`` that treats ``owner`` as gone: an interrupted driver ends its own runs."""
+
+    def __init__(self, owner: str):
+        self.owner = owner
+
+    def __call__(self, owner: str) -> bool:
+        return owner != self.owner and owner_is_alive(owner)
