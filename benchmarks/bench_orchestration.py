@@ -10,7 +10,6 @@ import os
 import tempfile
 from pathlib import Path
 
-import numpy as np
 import ray
 from ray import tune
 
@@ -19,26 +18,9 @@ from gdwm.config import TrackingConfig, load_config
 from gdwm.executor import RunEnv, run_stage
 from gdwm.runner import run_pipeline
 from gdwm.tracking import open_tracking
-from pipelines.data.layout import DatasetWriter, flat_pose
+from tests.gdwm.toydata import make_dataset
 
 CONF = Path(__file__).resolve().parent / "conf"
-
-
-def _dataset(root: Path) -> dict:
-    with DatasetWriter(root, name="bench", source="bench") as w:
-        w.add(
-            "scenes",
-            scene_id="s0",
-            name="s0",
-            num_frames=1,
-            frame_rate_hz=2.0,
-            description="",
-            weathers=[],
-            source="bench",
-        )
-        w.add("frames", scene_id="s0", frame_idx=0, timestamp_us=0, token="s0")
-        w.add("ego_poses", scene_id="s0", frame_idx=0, ego2world=flat_pose(np.eye(4)))
-    return json.loads((root / "dataset.json").read_text())
 
 
 @ray.remote
@@ -156,7 +138,7 @@ def run(quick: bool = False) -> list[Result]:
     os.environ["GDWM_CONF_PATH"] = str(CONF)
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        meta = _dataset(tmp / "ds")
+        meta = json.loads((make_dataset(tmp / "ds", scenes=1) / "dataset.json").read_text())
         started = not ray.is_initialized()
         if started:
             ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)

@@ -255,29 +255,35 @@ def test_scene_error_policy(first_run, tmp_path, policy):
     assert sorted(m.scene for m in new) == ["scene-0000", "scene-0001"]
 
 
-def test_sigkilled_driver_resumes_without_duplicates(tmp_path):
-    toy = Toy(tmp_path)
+def _start_blocked(toy: Toy, block: str) -> subprocess.Popen:
+    """Start `gdwm run` in its own session and return once the stage named in ``block`` is waiting."""
+    stage_name = block.split(":")[0]
     proc = subprocess.Popen(
         toy.args(),
-        env=toy.env(GDWM_TEST_BLOCK="lora:step=1"),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+        env=toy.env(GDWM_TEST_BLOCK=block),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
         start_new_session=True,
     )
+    deadline = time.time() + 240
+    while not (toy.root / f"blocked-{stage_name}").exists():
+        if proc.poll() is not None or time.time() > deadline:
+            proc.kill()
+            raise AssertionError(f"{stage_name} never started: {proc.communicate()[1][-2000:]}")
+        time.sleep(0.2)
+    return proc
+
+
+def test_sigkilled_driver_resumes_without_duplicates(tmp_path):
+    toy = Toy(tmp_path)
+    proc = _start_blocked(toy, "lora:step=1")
     try:
-        deadline = time.time() + 240
-        while not (tmp_path / "blocked-lora").exists():
-            assert proc.poll() is None, "driver exited before lora started"
-            assert time.time() < deadline, "lora never started"
-            time.sleep(0.2)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
         # Ray fate-shares workers with their driver: the blocked lora worker must die too.
-        worker = int(
-            next(
-                line for line in (tmp_path / "executions.log").read_text().splitlines() if line.startswith("lora ")
-            ).split()[3]
-        )
+        log = (tmp_path / "executions.log").read_text().splitlines()
+        worker = int(next(line for line in log if line.startswith("lora ")).split()[3])
         deadline = time.time() + 60
         while _alive(worker):
             assert time.time() < deadline, f"lora worker {worker} outlived its SIGKILLed driver"
@@ -305,19 +311,8 @@ def test_sigkilled_driver_resumes_without_duplicates(tmp_path):
 
 def test_sigterm_ends_every_run_killed(tmp_path):
     toy = Toy(tmp_path)
-    proc = subprocess.Popen(
-        toy.args(),
-        env=toy.env(GDWM_TEST_BLOCK="tokenizer"),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
+    proc = _start_blocked(toy, "tokenizer")
     try:
-        deadline = time.time() + 240
-        while not (tmp_path / "blocked-tokenizer").exists():
-            assert proc.poll() is None and time.time() < deadline, "tokenizer never started"
-            time.sleep(0.2)
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=120)
     finally:
