@@ -88,7 +88,18 @@ def test_dag_error_exits_2_before_launch(tmp_path):
     import subprocess
     import sys
 
-    r = subprocess.run([sys.executable, "-m", "gdwm", "run", f"workdir={tmp_path}"], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "gdwm",
+            "run",
+            f"workdir={tmp_path}",
+            "pipeline.stages.distill._target_=nowhere.distill",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2
-    assert "gdwm run: pipeline error: pipeline.stages.reconstruct._target_: cannot import" in r.stderr
+    assert "gdwm run: pipeline error: pipeline.stages.distill._target_: cannot import 'nowhere.distill'" in r.stderr
     assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "cache").exists()
