@@ -1,5 +1,10 @@
 """Pipeline validation fails before anything runs, naming the stage and what is wrong."""
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 from omegaconf import OmegaConf
 
@@ -32,6 +37,7 @@ def not_a_stage() -> None:
 
 
 M = __name__
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _cfg(stages: dict, **extra) -> OmegaConf:
@@ -85,9 +91,6 @@ def test_bad_resource_class():
 
 
 def test_dag_error_exits_2_before_launch(tmp_path):
-    import subprocess
-    import sys
-
     r = subprocess.run(
         [
             sys.executable,
