@@ -97,11 +97,13 @@ def test_dag_error_exits_2_before_launch(tmp_path):
             "-m",
             "gdwm",
             "run",
+            "experiment=toy",
             f"workdir={tmp_path}",
             "pipeline.stages.distill._target_=nowhere.distill",
         ],
         capture_output=True,
         text=True,
+        env={**os.environ, "PYTHONPATH": str(REPO), "GDWM_CONF_PATH": str(REPO / "tests" / "conf")},
     )
     assert r.returncode == 2
     assert "gdwm run: pipeline error: pipeline.stages.distill._target_: cannot import 'nowhere.distill'" in r.stderr
