@@ -139,13 +139,14 @@ def init_ray(cfg: DictConfig) -> bool:
     if ray.is_initialized():
         return False
     c = cfg.cluster
-    # Workers import the stage modules: give them the driver's import path.
-    env_vars = {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
-    kwargs = {"include_dashboard": False, "log_to_driver": cfg.run.worker_logs, "runtime_env": {"env_vars": env_vars}}
+    kwargs = {"include_dashboard": False, "log_to_driver": cfg.run.worker_logs}
     if c.address:
+        # A cluster's workers run the installed wheel (k8s/Dockerfile); the driver's paths mean nothing there.
         ray.init(address=c.address, **kwargs)
     else:
-        ray.init(num_cpus=c.num_cpus, num_gpus=c.num_gpus, **kwargs)
+        # Local workers import the stage modules from wherever the driver does.
+        env_vars = {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+        ray.init(num_cpus=c.num_cpus, num_gpus=c.num_gpus, runtime_env={"env_vars": env_vars}, **kwargs)
     if threading.current_thread() is threading.main_thread():
         # ray.init's own SIGTERM handler exits 1; exit 143 as a terminated process should (finally shuts Ray).
         signal.signal(signal.SIGTERM, _sigterm)
