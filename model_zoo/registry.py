@@ -16,7 +16,7 @@ from typing import Any
 
 _BUILDERS: dict[tuple[str, str], Callable[..., Any]] = {}
 # Modules that register the shipped variants; imported on first lookup so importing model_zoo stays cheap.
-_SHIPPED: tuple[str, ...] = ()
+_SHIPPED: tuple[str, ...] = ("model_zoo.encoders.daisy", "model_zoo.encoders.qwen3_vl_vision", "model_zoo.feature_ae")
 
 
 class UnknownVariant(KeyError):
