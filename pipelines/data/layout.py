@@ -154,18 +154,20 @@ LIDAR_SCHEMA = pa.schema(
 
 
 def gaussian_schema(feature_dim: int, frame: str = "ego") -> pa.Schema:
-    """Gaussians of one frame (in its ego frame unless ``frame`` says otherwise); activated values, not logits."""
-    return pa.schema(
-        [
-            ("xyz", _fsl(3)),  # centre, metres, ego frame
-            ("scale", _fsl(3)),  # standard deviations along the local axes, metres (> 0)
-            ("rotation", _fsl(4)),  # unit quaternion (w, x, y, z), local -> ego
-            ("opacity", pa.float32()),  # probability in [0, 1]
-            ("color", _fsl(3)),  # linear RGB in [0, 1]
-            ("feature", _fsl(feature_dim)),  # compact feature code z_i
-        ],
-        metadata={b"gdwm.feature_dim": str(feature_dim).encode(), b"gdwm.frame": frame.encode()},
-    )
+    """Gaussians of one frame (in its ego frame unless ``frame`` says otherwise); activated values, not logits.
+
+    ``feature_dim`` 0 (reconstruction before distillation) omits the ``feature`` column.
+    """
+    fields = [
+        ("xyz", _fsl(3)),  # centre, metres, ego frame
+        ("scale", _fsl(3)),  # standard deviations along the local axes, metres (> 0)
+        ("rotation", _fsl(4)),  # unit quaternion (w, x, y, z), local -> ego
+        ("opacity", pa.float32()),  # probability in [0, 1]
+        ("color", _fsl(3)),  # linear RGB in [0, 1]
+    ]
+    if feature_dim:
+        fields.append(("feature", _fsl(feature_dim)))  # compact feature code z_i
+    return pa.schema(fields, metadata={b"gdwm.feature_dim": str(feature_dim).encode(), b"gdwm.frame": frame.encode()})
 
 
 TABLES: dict[str, pa.Schema] = {
@@ -216,6 +218,8 @@ def fsl_to_numpy(column: pa.ChunkedArray | pa.Array, width: int) -> np.ndarray:
 def check_gaussians(arrays: Mapping[str, np.ndarray], where: str) -> None:
     """Reject wrong-shaped or non-finite Gaussians, naming ``where`` (file/scene/frame) and the field."""
     required = {"xyz": 3, "scale": 3, "rotation": 4, "opacity": 1, "color": 3, "feature": None}
+    if "feature" not in arrays:
+        required.pop("feature")  # not distilled yet
     missing = [k for k in required if k not in arrays]
     if missing:
         raise DataError(f"{where}: Gaussians lack field(s) {missing}")
@@ -228,7 +232,7 @@ def check_gaussians(arrays: Mapping[str, np.ndarray], where: str) -> None:
         elif width is not None:
             shape_ok = shape_ok and a.ndim == 2 and a.shape[1] == width
         else:
-            shape_ok = shape_ok and a.ndim == 2 and a.shape[1] >= 1
+            shape_ok = shape_ok and a.ndim == 2
         if not shape_ok:
             want = f"[{n}, {width}]" if width not in (None, 1) else (f"[{n}]" if width == 1 else f"[{n}, D]")
             raise DataError(f"{where}: Gaussian field '{key}' has shape {list(a.shape)}, expected {want}")
@@ -252,16 +256,19 @@ def gaussians_table(arrays: Mapping[str, np.ndarray], where: str = "gaussians", 
     check_gaussians(arrays, where)
     rot = np.asarray(arrays["rotation"], dtype=np.float32)
     rot = rot / np.linalg.norm(rot, axis=1, keepdims=True)
-    feat = np.asarray(arrays["feature"], dtype=np.float32)
-    schema = gaussian_schema(feat.shape[1], frame)
+    feat = np.asarray(arrays["feature"], dtype=np.float32) if "feature" in arrays else None
+    if feat is not None and feat.shape[1] == 0:
+        feat = None
+    schema = gaussian_schema(0 if feat is None else feat.shape[1], frame)
     cols = [
         fsl_array(arrays["xyz"], 3),
         fsl_array(arrays["scale"], 3),
         fsl_array(rot, 4),
         pa.array(np.asarray(arrays["opacity"], dtype=np.float32).reshape(-1)),
         fsl_array(arrays["color"], 3),
-        fsl_array(feat, feat.shape[1]),
     ]
+    if feat is not None:
+        cols.append(fsl_array(feat, feat.shape[1]))
     return pa.Table.from_arrays(cols, schema=schema)
 
 

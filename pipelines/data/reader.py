@@ -231,5 +231,8 @@ def gaussians_from_table(t: pa.Table) -> dict[str, np.ndarray]:
     widths = {"xyz": 3, "scale": 3, "rotation": 4, "color": 3}
     out = {k: fsl_to_numpy(t[k], w) for k, w in widths.items()}
     out["opacity"] = t["opacity"].to_numpy()
-    out["feature"] = fsl_to_numpy(t["feature"], t.schema.field("feature").type.list_size)
+    if "feature" in t.column_names:
+        out["feature"] = fsl_to_numpy(t["feature"], t.schema.field("feature").type.list_size)
+    else:  # reconstructed, not yet distilled
+        out["feature"] = np.zeros((t.num_rows, 0), dtype=np.float32)
     return out

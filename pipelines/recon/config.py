@@ -1,0 +1,59 @@
+"""Settings of the reconstruct stage (``conf/stage/reconstruct/*.yaml``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class ReconstructConfig:
+    """LiDAR-initialised 3DGS per scene; defaults are the CPU settings of synthetic_mini."""
+
+    iterations: int = 600
+    """Optimisation steps (one training view per step)."""
+    max_gaussians: int = 30000
+    """Cap on initial Gaussians after voxel down-sampling of the aggregated LiDAR."""
+    voxel_m: float = 0.15
+    """Voxel size of the LiDAR down-sampling, metres."""
+    drop_moving: bool = True
+    """Model moving objects' returns in their own box frames (posed per frame) instead of the static field."""
+    moving_speed_mps: float = 0.5
+    """Speed above which a box counts as moving."""
+    holdout_every: int = 8
+    """Every n-th (frame, camera) view is held out for evaluation (0 = none)."""
+    ssim_weight: float = 0.2
+    """lambda of (1 - lambda) L1 + lambda D-SSIM."""
+    depth_weight: float = 0.05
+    """Weight of the L1 loss between rendered depth and projected LiDAR depth (0 = off)."""
+    lr_means: float = 0.00016
+    """Adam lr of the centres, times the scene extent (3DGS convention)."""
+    lr_scales: float = 0.005
+    """Adam lr of the log-scales."""
+    lr_quats: float = 0.001
+    """Adam lr of the rotations."""
+    lr_opacities: float = 0.05
+    """Adam lr of the opacity logits."""
+    lr_colors: float = 0.01
+    """Adam lr of the colours (logits)."""
+    densify_from: int = 100
+    """First step of densification."""
+    densify_until: int = 450
+    """Last step of densification."""
+    densify_every: int = 50
+    """Densify / prune every n steps."""
+    grad_threshold: float = 0.0002
+    """Mean positional-gradient norm above which a Gaussian is cloned (small) or split (large)."""
+    split_scale_m: float = 0.3
+    """Gaussians larger than this (max scale, metres) are split rather than cloned."""
+    prune_opacity: float = 0.01
+    """Gaussians less opaque than this are pruned."""
+    opacity_reset_every: int = 300
+    """Reset opacities to a low value every n steps (0 = never)."""
+    min_psnr_db: float = 18.0
+    """Frames whose held-out PSNR falls below this are excluded and recorded in the manifest."""
+    background: list[float] | None = None
+    """Fixed background RGB; null learns one colour per scene."""
+    seed: int = 0
+    """Seed of view order and initialisation."""
+    backend: str = "auto"
+    """Rasterizer backend: auto, torch, gsplat."""
