@@ -161,7 +161,10 @@ class Trainer:
         )
 
     def step(self, v: View) -> float:
-        out = self.render(v)
+        try:
+            out = self.render(v)
+        except ValueError as e:  # the rasterizer refuses NaN/inf parameters: the optimisation diverged
+            raise NaNLossError(f"frame {v.frame} {v.camera}: {e}") from e
         gt = torch.from_numpy(v.rgb_HW3)
         loss = photometric(out.rgb, gt, self.cfg.ssim_weight)
         if self.cfg.depth_weight > 0:

@@ -1,4 +1,4 @@
-"""Shared fixtures of the data tests (synthetic_mini ones are named ``synth_*``)."""
+"""Shared fixtures of the pipelines tests (synthetic_mini ones are named ``synth_*``)."""
 
 from __future__ import annotations
 
