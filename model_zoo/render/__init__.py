@@ -19,9 +19,9 @@ from torch import Tensor
 from model_zoo.render.camera import Camera
 from model_zoo.render.dense import splat_dense
 from model_zoo.render.project import Splatted, project_gaussians
-from model_zoo.render.torch_tiles import splat_tiles
+from model_zoo.render.torch_tiles import splat_tiles, splat_weights
 
-__all__ = ["BACKENDS", "Camera", "RenderOutput", "rasterize"]
+__all__ = ["BACKENDS", "Camera", "RenderOutput", "composite_weights", "rasterize"]
 
 BACKENDS = ("auto", "torch", "gsplat", "dense")
 
@@ -152,3 +152,23 @@ def rasterize(
     depth = s.depth_HW / alpha.clamp(min=1e-6)
     feats = values_HWD[..., 3:] if features is not None else None
     return RenderOutput(rgb=rgb, depth=depth, alpha=alpha, features=feats, n_visible=s.n_visible)
+
+
+def composite_weights(
+    means: Tensor,
+    scales: Tensor,
+    quats: Tensor,
+    opacities: Tensor,
+    camera: Camera,
+    tile_size: int = 16,
+    eps2d: float = 0.3,
+) -> Tensor:
+    """Sparse ``[H*W, N]`` compositing weights of fixed Gaussians in ``camera`` (no gradient).
+
+    ``(W @ values).reshape(H, W, -1)`` equals ``rasterize(..., features=values).features``: what distillation
+    needs when only per-Gaussian values are optimised.
+    """
+    _check_inputs({"means": means, "scales": scales, "quats": quats, "opacities": opacities})
+    with torch.no_grad():
+        cam = camera.to(means.device, means.dtype)
+        return splat_weights(project_gaussians(means, scales, quats, opacities, cam, eps2d), cam, tile_size)

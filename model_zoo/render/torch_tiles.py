@@ -42,18 +42,8 @@ def bin_tiles(box_N4: Tensor, tile_size: int, n_tiles_x: int, n_tiles: int) -> t
     return gauss_M[perm], torch.cumsum(count_T, 0) - count_T, count_T
 
 
-def splat_tiles(
-    projected: Projected, values_ND: Tensor, camera: Camera, tile_size: int = 16, chunk: int = 32
-) -> Splatted:
-    """Rasterize the visible Gaussians of ``projected`` tile by tile; see the module docstring.
-
-    Args:
-        projected: output of ``project_gaussians`` for ``camera``.
-        values_ND: per-Gaussian channels to composite (colours, then features).
-        camera: the view (its size sets the tile grid).
-        tile_size: tile edge in pixels.
-        chunk: Gaussians per tile list composited per step (K); smaller chunks stop sooner once tiles go opaque.
-    """
+def _walk_tiles(projected: Projected, values_ND: Tensor, camera: Camera, tile_size: int, chunk: int, on_chunk):
+    """The shared tile walk; ``on_chunk(active, rows_AK, w_APK, T_in_AP, values_AKE)`` sees every chunk's weights."""
     p, W, H, ts = projected, camera.width, camera.height, tile_size
     ntx, nty = -(-W // ts), -(-H // ts)
     n_tiles, P, dev = ntx * nty, ts * ts, values_ND.device
@@ -70,7 +60,7 @@ def splat_tiles(
     ones = torch.ones_like(p.depth_N[idx, None])
     values_NE = torch.cat([values_ND[idx], p.depth_N[idx, None], ones], dim=-1)  # values, z, 1 (-> alpha)
     values_NE = torch.cat([values_NE, values_NE.new_zeros(1, values_NE.shape[1])])
-    E = values_NE.shape[1]
+    rows_N = torch.cat([idx, idx.new_full((1,), -1)])  # input row of each depth-ordered Gaussian (-1: padding)
 
     gauss_M, start_T, count_T = bin_tiles(p.box_N4[idx], ts, ntx, n_tiles)
     gauss_M = torch.cat([gauss_M, gauss_M.new_full((1,), n)])  # gather target for padding slots
@@ -83,7 +73,6 @@ def splat_tiles(
     px_TP, py_TP = px_TP.to(values_ND) + 0.5, py_TP.to(values_ND) + 0.5
     # Pixels past the image edge start "terminated" (T = 0), so they never count and never keep a tile alive.
     T_TP = inside_TP.to(values_ND)
-    out_TPE = values_ND.new_zeros(n_tiles, P, E)
     k_range = torch.arange(chunk, device=dev)
 
     for c0 in range(0, int(count_T.max()) if n else 0, chunk):
@@ -107,10 +96,61 @@ def splat_tiles(
             # Count a Gaussian only while the transmittance after it stays >= T_MIN (3DGS's early stop).
             alive = log_T_incl >= (LOG_T_MIN - torch.log(T_in))[:, :, None]
         w_APK = torch.where(alive, alpha_APK * torch.exp(log_T_incl - log_1m), 0.0)
-        # T_in is constant along the chunk: apply it to the [A, P, E] sums rather than to every weight.
-        contrib = torch.bmm(w_APK, values_NE[g_AK]) * T_in[:, :, None]
-        out_TPE = out_TPE.index_add(0, active, contrib)
+        on_chunk(active, rows_N[g_AK], w_APK, T_in, values_NE[g_AK])
         T_TP = T_TP.index_copy(0, active, T_in * torch.exp(log_T_incl[..., -1]))
+    return n
 
-    out_HWE = out_TPE.reshape(nty, ntx, ts, ts, E).permute(0, 2, 1, 3, 4).reshape(nty * ts, ntx * ts, E)[:H, :W]
+
+def splat_tiles(
+    projected: Projected, values_ND: Tensor, camera: Camera, tile_size: int = 16, chunk: int = 32
+) -> Splatted:
+    """Rasterize the visible Gaussians of ``projected`` tile by tile; see the module docstring.
+
+    Args:
+        projected: output of ``project_gaussians`` for ``camera``.
+        values_ND: per-Gaussian channels to composite (colours, then features).
+        camera: the view (its size sets the tile grid).
+        tile_size: tile edge in pixels.
+        chunk: Gaussians per tile list composited per step (K); smaller chunks stop sooner once tiles go opaque.
+    """
+    W, H, ts = camera.width, camera.height, tile_size
+    ntx, nty = -(-W // ts), -(-H // ts)
+    E = values_ND.shape[1] + 2
+    out = [values_ND.new_zeros(ntx * nty, ts * ts, E)]
+
+    def accumulate(active, _rows, w_APK, T_in, values_AKE):
+        # T_in is constant along the chunk: apply it to the [A, P, E] sums rather than to every weight.
+        out[0] = out[0].index_add(0, active, torch.bmm(w_APK, values_AKE) * T_in[:, :, None])
+
+    n = _walk_tiles(projected, values_ND, camera, tile_size, chunk, accumulate)
+    out_HWE = out[0].reshape(nty, ntx, ts, ts, E).permute(0, 2, 1, 3, 4).reshape(nty * ts, ntx * ts, E)[:H, :W]
     return Splatted(out_HWE[..., :-2], out_HWE[..., -2], out_HWE[..., -1], n)
+
+
+def splat_weights(projected: Projected, camera: Camera, tile_size: int = 16, chunk: int = 32) -> Tensor:
+    """The compositing weights w_{i,u} of every (pixel u, Gaussian i) as a sparse ``[H*W, N]`` matrix.
+
+    With geometry fixed, any per-Gaussian channels render as ``W @ values`` (Eq. F_v(u) = sum_i w_iu f_i), which
+    is how feature distillation optimises codes without re-rasterizing every step.
+    """
+    W, ts = camera.width, tile_size
+    ntx = -(-W // ts)
+    dev = projected.means2d_N2.device
+    local = torch.arange(ts * ts, device=dev)
+    parts: list[tuple[Tensor, Tensor, Tensor]] = []
+
+    def collect(active, rows_AK, w_APK, T_in, _values):
+        w = w_APK * T_in[:, :, None]
+        px = (active[:, None] % ntx) * ts + local % ts
+        py = (active[:, None] // ntx) * ts + local // ts
+        a, pi, k = torch.nonzero(w > 0, as_tuple=True)
+        parts.append((py[a, pi] * W + px[a, pi], rows_AK[a, k], w[a, pi, k]))
+
+    with torch.no_grad():
+        dummy = projected.depth_N.new_zeros(projected.depth_N.shape[0], 0)
+        _walk_tiles(projected, dummy, camera, tile_size, chunk, collect)
+    n_pix = camera.height * camera.width
+    if not parts:
+        return torch.sparse_coo_tensor(torch.zeros(2, 0, dtype=torch.long), [], (n_pix, projected.depth_N.shape[0]))
+    pix, rows, w = (torch.cat(x) for x in zip(*parts, strict=True))
+    return torch.sparse_coo_tensor(torch.stack([pix, rows]), w, (n_pix, projected.depth_N.shape[0])).coalesce()

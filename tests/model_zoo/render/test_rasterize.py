@@ -81,3 +81,23 @@ def test_bad_input_names_the_argument_and_shape(scene, change, message):
         change["means"][3, 1] = float("nan")
     with pytest.raises(ValueError, match=message):
         rasterize(**(s | change), camera=cam)
+
+
+def test_composite_weights_reproduce_rendered_features():
+    from model_zoo.render import Camera, composite_weights, rasterize
+
+    g = torch.Generator().manual_seed(3)
+    n = 300
+    means = torch.randn(n, 3, generator=g) * torch.tensor([2.0, 1.0, 1.0]) + torch.tensor([0.0, 0.0, 6.0])
+    scales = torch.rand(n, 3, generator=g) * 0.2 + 0.05
+    quats = torch.randn(n, 4, generator=g)
+    opac = torch.rand(n, generator=g) * 0.8 + 0.1
+    colors = torch.rand(n, 3, generator=g)
+    feats = torch.randn(n, 5, generator=g)
+    K = torch.tensor([[40.0, 0, 24], [0, 40.0, 16], [0, 0, 1]])
+    cam = Camera(K, torch.eye(4), 48, 32)
+    out = rasterize(means, scales, quats, opac, colors, cam, features=feats)
+    W = composite_weights(means, scales, quats, opac, cam)
+    assert W.shape == (48 * 32, n) and W._nnz() > 0
+    torch.testing.assert_close(torch.sparse.mm(W, feats).reshape(32, 48, 5), out.features, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(torch.sparse.sum(W, dim=1).to_dense().reshape(32, 48), out.alpha, atol=1e-5, rtol=1e-5)
