@@ -41,8 +41,10 @@ class ReconstructConfig:
     """Last step of densification."""
     densify_every: int = 50
     """Densify / prune every n steps."""
-    grad_threshold: float = 0.0002
-    """Mean positional-gradient norm above which a Gaussian is cloned (small) or split (large)."""
+    densify_fraction: float = 0.05
+    """Share of Gaussians with the largest mean positional gradient cloned (small) or split (large) per round."""
+    max_total_gaussians: int = 60000
+    """Densification stops growing past this many Gaussians."""
     split_scale_m: float = 0.3
     """Gaussians larger than this (max scale, metres) are split rather than cloned."""
     prune_opacity: float = 0.01

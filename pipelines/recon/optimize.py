@@ -210,7 +210,13 @@ class Trainer:
         with torch.no_grad():
             mean_grad = self.grad_accum / self.grad_count.clamp(min=1)
             big = g.log_scales.exp().max(dim=1).values > cfg.split_scale_m
-            hot = mean_grad > cfg.grad_threshold * self.extent
+            # A fixed share with the largest gradients, rather than an absolute threshold: our gradients are of
+            # world-space centres, whose scale depends on the scene; 3DGS thresholds screen-space ones.
+            n_hot = int(cfg.densify_fraction * len(g)) if len(g) < cfg.max_total_gaussians else 0
+            hot = torch.zeros(len(g), dtype=torch.bool)
+            if n_hot > 0:
+                hot[torch.topk(mean_grad, n_hot).indices] = True
+            hot &= self.grad_count > 0
             clone, split = hot & ~big, hot & big
             keep = (torch.sigmoid(g.opacity_logits) >= cfg.prune_opacity) & ~split
             params = g.params()

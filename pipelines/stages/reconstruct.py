@@ -6,6 +6,8 @@ Output of one scene::
     gaussians/<frame:05d>.arrow the same Gaussians in that frame's ego frame (excluded frames absent)
     qc.json                     per-view PSNR/SSIM of held-out views, per-frame means, excluded frames
     views.json                  which (frame, camera) views were trained on and which held out
+    canonical.pt                the field's parameters (static: world frame; moving objects: box frames) + instance
+    instances.json              moving instance ids and their per-frame box -> world poses
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import json
 from dataclasses import asdict
 
 import numpy as np
+import torch
 
 from gdwm.stage import StageContext, stage
 from pipelines.data.layout import gaussians_relpath, gaussians_table, matrix_to_quat_wxyz, write_arrow
@@ -67,7 +70,8 @@ def reconstruct(ctx: StageContext) -> dict:
     train, held = [views[i] for i in train_idx], [views[i] for i in held_idx]
     init = initial_gaussians(lidar, train, cfg.voxel_m, cfg.max_gaussians, cfg.seed)
     g = init_gaussians(init.points_N3, init.colors_N3, init.scales_N, init.instance_N)
-    poses = {f.idx: FramePoses.build(init.instances, lidar.poses.get(f.idx, {})) for f in scene.frames()}
+    frame_ids = [f.idx for f in scene.frames()]
+    poses = {f: FramePoses.build(init.instances, lidar.poses.get(f, {})) for f in frame_ids}
     centres = np.stack([np.linalg.inv(v.world2cam_44)[:3, 3] for v in views])
     extent = max(1.0, 1.1 * float(np.linalg.norm(centres - centres.mean(0), axis=1).max()))
     ctx.tracker.log_params(
@@ -118,6 +122,16 @@ def reconstruct(ctx: StageContext) -> dict:
         "config": asdict(cfg),
     }
     (ctx.out_dir / "qc.json").write_text(json.dumps(qc, indent=2))
+    # The canonical field (static part in the world, moving objects in their box frames) and the per-frame box
+    # poses: what distillation optimises codes on, so a Gaussian keeps one code across frames.
+    torch.save(
+        {k: v.detach().clone() for k, v in {**trainer.g.params(), "instance": trainer.g.instance}.items()},
+        ctx.out_dir / "canonical.pt",
+    )
+    poses_json = {
+        str(f): {k: [float(x) for x in m.reshape(16)] for k, m in lidar.poses.get(f, {}).items()} for f in frame_ids
+    }
+    (ctx.out_dir / "instances.json").write_text(json.dumps({"instances": init.instances, "poses": poses_json}))
     split = {"train": [[v.frame, v.camera] for v in train], "heldout": [[v.frame, v.camera] for v in held]}
     (ctx.out_dir / "views.json").write_text(json.dumps(split))
     return {"heldout_psnr_mean": mean_psnr, "excluded_frames": excluded, "gaussians": len(trainer.g)}

@@ -1,0 +1,1 @@
+"""Foundation-feature distillation into the reconstructed Gaussians (paper: Foundation-feature Gaussian Tokenizer)."""

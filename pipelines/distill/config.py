@@ -1,0 +1,44 @@
+"""Settings of the distill stage (``conf/stage/distill/*.yaml``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class DistillConfig:
+    """E_F frozen; E_z / D_F fitted with L_ae; per-Gaussian codes z_i optimised with L_distill."""
+
+    encoder: str = "daisy"
+    """Foundation encoder variant: ``daisy`` (CPU) or ``qwen3_vl_vision`` (a local Qwen3-VL checkpoint)."""
+    encoder_path: str | None = None
+    """Local checkpoint directory of ``qwen3_vl_vision``."""
+    encoder_tiny: bool = False
+    """Use the encoder's tiny random flavor (tests, smoke runs)."""
+    d_f: int = 64
+    """Feature dimension of ``daisy`` (the Qwen encoder's is fixed by its checkpoint)."""
+    feature_tokenizer: str = "foundation"
+    """Compact code variant: ``foundation`` (``d_z`` dims) or ``langsplat3`` (3 dims, like the public release)."""
+    d_z: int = 16
+    """Code dimension of ``foundation``."""
+    ae_hidden: int = 128
+    """Hidden width of E_z / D_F."""
+    ae_steps: int = 400
+    """Adam steps of the autoencoder on pixel features (L_ae)."""
+    ae_lr: float = 0.003
+    """Adam lr of the autoencoder."""
+    ae_pixels_per_view: int = 512
+    """Valid pixels sampled per training view for the autoencoder."""
+    distill_steps: int = 200
+    """Adam steps on the codes z_i."""
+    views_per_step: int = 8
+    """Training views sampled per step (stochastic L_distill)."""
+    min_weight: float = 0.01
+    """Compositing weights below this are dropped from the precomputed per-view weight matrices (3x fewer entries,
+    about 1% of the rendered mass)."""
+    distill_lr: float = 0.05
+    """Adam lr of the codes."""
+    min_alpha: float = 0.5
+    """Pixels count in Omega_v only where the Gaussians cover them (rendered alpha >= this) and E_F is defined."""
+    seed: int = 0
+    """Seed of pixel sampling and initialisation."""
