@@ -60,24 +60,24 @@ def _setup(cfg: dict) -> dict:
     return {"loaded_at": time.time()}
 
 
-@stage("reconstruct", "1", config=["stage.reconstruct"], per_scene=True, resources="cpu", setup=_setup)
+@stage("reconstruct", "1", config=["stage.toy_reconstruct"], per_scene=True, resources="cpu", setup=_setup)
 def reconstruct(ctx: StageContext) -> dict:
     _record(ctx)
     _inject(ctx)
     assert ctx.state is not None
     seed = int.from_bytes(ctx.scene.encode()[-4:], "little")
-    pts = np.random.default_rng(seed).normal(size=(64, 3)) * ctx.cfg("stage.reconstruct")["scale"]
+    pts = np.random.default_rng(seed).normal(size=(64, 3)) * ctx.cfg("stage.toy_reconstruct")["scale"]
     np.save(ctx.out_dir / "points.npy", pts)
     ctx.tracker.log_metrics({"psnr": 20.0 + seed % 7}, step=0)
     return {"points": 64}
 
 
-@stage("distill", "1", config=["stage.distill"], upstream=["reconstruct"], per_scene=True, resources="gpu")
+@stage("distill", "1", config=["stage.toy_distill"], upstream=["reconstruct"], per_scene=True, resources="gpu")
 def distill(ctx: StageContext) -> None:
     _record(ctx)
     _inject(ctx)
     pts = np.load(ctx.upstream["reconstruct"].scenes[ctx.scene] / "points.npy")
-    dim = ctx.cfg("stage.distill")["dim"]
+    dim = ctx.cfg("stage.toy_distill")["dim"]
     np.save(ctx.out_dir / "features.npy", np.tanh(pts @ np.ones((3, dim))))
 
 
@@ -102,18 +102,18 @@ def _train_stage(ctx: StageContext, steps: int, target: float) -> None:
     torch.save({"w": result.state["w"]}, ctx.out_dir / "weights.pt")
 
 
-@stage("tokenizer", "1", config=["stage.tokenizer"], upstream=["distill"], resources="train")
+@stage("tokenizer", "1", config=["stage.toy_tokenizer"], upstream=["distill"], resources="train")
 def tokenizer(ctx: StageContext) -> None:
     n = sum(np.load(p / "features.npy").size for p in ctx.upstream["distill"].scenes.values())
-    _train_stage(ctx, ctx.cfg("stage.tokenizer")["steps"], float(n % 5))
+    _train_stage(ctx, ctx.cfg("stage.toy_tokenizer")["steps"], float(n % 5))
 
 
-@stage("lora", "1", config=["stage.lora"], upstream=["tokenizer"], resources="train")
+@stage("lora", "1", config=["stage.toy_lora"], upstream=["tokenizer"], resources="train")
 def lora(ctx: StageContext) -> None:
-    _train_stage(ctx, ctx.cfg("stage.lora")["steps"], float(ctx.cfg("stage.lora")["rank"]))
+    _train_stage(ctx, ctx.cfg("stage.toy_lora")["steps"], float(ctx.cfg("stage.toy_lora")["rank"]))
 
 
-@stage("evaluate_qa", "1", config=["stage.evaluate_qa"], upstream=["lora"], resources="eval")
+@stage("evaluate_qa", "1", config=["stage.toy_evaluate_qa"], upstream=["lora"], resources="eval")
 def evaluate_qa(ctx: StageContext) -> dict:
     _record(ctx)
     _inject(ctx)
@@ -124,12 +124,12 @@ def evaluate_qa(ctx: StageContext) -> dict:
     return metrics
 
 
-@stage("diffusion", "1", config=["stage.diffusion"], upstream=["lora"], resources="train")
+@stage("diffusion", "1", config=["stage.toy_diffusion"], upstream=["lora"], resources="train")
 def diffusion(ctx: StageContext) -> None:
-    _train_stage(ctx, ctx.cfg("stage.diffusion")["steps"], 0.5)
+    _train_stage(ctx, ctx.cfg("stage.toy_diffusion")["steps"], 0.5)
 
 
-@stage("evaluate_gen", "1", config=["stage.evaluate_gen"], upstream=["diffusion"], resources="eval")
+@stage("evaluate_gen", "1", config=["stage.toy_evaluate_gen"], upstream=["diffusion"], resources="eval")
 def evaluate_gen(ctx: StageContext) -> dict:
     _record(ctx)
     _inject(ctx)

@@ -149,14 +149,14 @@ def test_identical_rerun_is_all_cache_hits(first_run, tmp_path):
 
 def test_lora_change_reruns_lora_and_descendants_only(first_run, tmp_path):
     toy = _copy(first_run, tmp_path)
-    _ok(toy.run("stage.lora.rank=8"))
+    _ok(toy.run("stage.toy_lora.rank=8"))
     assert sorted(s for s, _ in toy.executions()) == sorted(["lora", "evaluate_qa", "diffusion", "evaluate_gen"])
     assert Counter(r.data.tags["gdwm.stage"] for r in toy.runs())["lora"] == 2
 
 
 def test_targets_run_only_ancestors(first_run, tmp_path):
     toy = _copy(first_run, tmp_path)
-    _ok(toy.run("stage.lora.rank=16", "targets=[evaluate_qa]"))
+    _ok(toy.run("stage.toy_lora.rank=16", "targets=[evaluate_qa]"))
     assert sorted(s for s, _ in toy.executions()) == ["evaluate_qa", "lora"]
 
 
@@ -179,7 +179,7 @@ def test_flipped_byte_is_detected_and_recomputed(first_run, tmp_path):
 def test_dry_run_prints_plan_without_running(first_run, tmp_path):
     toy = _copy(first_run, tmp_path)
     r = subprocess.run(
-        [*toy.args("stage.diffusion.steps=3"), "--dry-run"], env=toy.env(), capture_output=True, text=True, timeout=120
+        [*toy.args("stage.toy_diffusion.steps=3"), "--dry-run"], env=toy.env(), capture_output=True, text=True, timeout=120
     )
     _ok(r)
     assert toy.executions() == []
@@ -220,7 +220,7 @@ def test_killed_train_worker_resumes_from_last_checkpoint(tmp_path):
 
 def test_failing_stage_exits_1_naming_it_and_keeps_the_cache(first_run, tmp_path):
     toy = _copy(first_run, tmp_path)
-    r = toy.run("stage.diffusion.steps=5", GDWM_TEST_FAIL="evaluate_gen:None")
+    r = toy.run("stage.toy_diffusion.steps=5", GDWM_TEST_FAIL="evaluate_gen:None")
     assert r.returncode == 1, r.stderr
     assert "stage 'evaluate_gen' failed: ValueError: injected failure in evaluate_gen:None" in r.stderr
     failed = [x for x in toy.runs() if x.info.status == "FAILED"]
@@ -230,7 +230,7 @@ def test_failing_stage_exits_1_naming_it_and_keeps_the_cache(first_run, tmp_path
     assert sorted(s for s, _ in toy.executions()) == ["diffusion", "evaluate_gen"]
     # the new diffusion entry is kept: fixing the failure reruns only evaluate_gen
     (tmp_path / "executions.log").write_text("")
-    _ok(toy.run("stage.diffusion.steps=5"))
+    _ok(toy.run("stage.toy_diffusion.steps=5"))
     assert toy.executions() == [("evaluate_gen", "-")]
 
 
@@ -238,7 +238,7 @@ def test_failing_stage_exits_1_naming_it_and_keeps_the_cache(first_run, tmp_path
 def test_scene_error_policy(first_run, tmp_path, policy):
     toy = _copy(first_run, tmp_path)
     r = toy.run(
-        "stage.distill.dim=5", f"run.on_scene_error={policy}", "targets=[distill]", GDWM_TEST_FAIL="distill:scene-0002"
+        "stage.toy_distill.dim=5", f"run.on_scene_error={policy}", "targets=[distill]", GDWM_TEST_FAIL="distill:scene-0002"
     )
     ex = toy.executions()
     assert sorted(ex) == [("distill", "scene-0000"), ("distill", "scene-0001"), ("distill", "scene-0002")]
@@ -253,7 +253,7 @@ def test_scene_error_policy(first_run, tmp_path, policy):
         _ok(r)
         assert "1 scene(s) skipped" in r.stdout
     # the scenes that worked are cached either way
-    new = [m for m in cache.entries("distill") if m.config == {"stage.distill": {"dim": 5}}]
+    new = [m for m in cache.entries("distill") if m.config == {"stage.toy_distill": {"dim": 5}}]
     assert sorted(m.scene for m in new) == ["scene-0000", "scene-0001"]
 
 
