@@ -298,7 +298,12 @@ def optimise(
         background = torch.tensor(_logit(np.asarray(cfg.background)), dtype=torch.float32)
     t = Trainer(g, cfg, extent, background, poses)
     order: list[int] = []
+    base_lr = cfg.lr_means * extent
     for it in range(cfg.iterations):
+        # Centres' lr decays exponentially to 1% (3DGS), so late steps refine instead of jitter.
+        for group in t.opt.param_groups:
+            if group["name"] == "means":
+                group["lr"] = base_lr * 0.01 ** (it / max(cfg.iterations - 1, 1))
         if not order:
             order = list(rng.permutation(len(train)))
         loss = t.step(train[order.pop()])

@@ -63,26 +63,41 @@ def _has(cfg: DictConfig, dotted: str) -> bool:
         return False
 
 
-def load_pipeline(cfg: DictConfig) -> Pipeline:
+def _resolve(name: str, target: str) -> StageDef:
+    where = f"pipeline.stages.{name}._target_"
+    try:
+        obj: Any = get_object(target)
+    except Exception as e:
+        raise DagError(f"{where}: cannot import '{target}' ({e})") from e
+    if not isinstance(obj, StageDef):
+        raise DagError(f"{where}: '{target}' is not a gdwm stage (decorate it with gdwm.stage.stage)")
+    if obj.name != name:
+        raise DagError(f"{where}: '{target}' declares stage name '{obj.name}', not '{name}'")
+    return obj
+
+
+def load_pipeline(cfg: DictConfig, targets: list[str] | None = None) -> Pipeline:
+    """Validate the DAG; with ``targets``, only they and their ancestors are imported and checked."""
     pcfg = cfg.pipeline
+    declared = {name: ref._target_ for name, ref in pcfg.stages.items()}
+    unknown = [t for t in targets or [] if t not in declared]
+    if unknown:
+        raise DagError(f"targets {unknown} are not stages of pipeline '{pcfg.name}' (stages: {sorted(declared)})")
     stages: dict[str, StageDef] = {}
-    for name, ref in pcfg.stages.items():
-        where = f"pipeline.stages.{name}._target_"
-        try:
-            obj: Any = get_object(ref._target_)
-        except Exception as e:
-            raise DagError(f"{where}: cannot import '{ref._target_}' ({e})") from e
-        if not isinstance(obj, StageDef):
-            raise DagError(f"{where}: '{ref._target_}' is not a gdwm stage (decorate it with gdwm.stage.stage)")
-        if obj.name != name:
-            raise DagError(f"{where}: '{ref._target_}' declares stage name '{obj.name}', not '{name}'")
-        stages[name] = obj
+    todo = list(targets) if targets else list(declared)
+    while todo:
+        name = todo.pop(0)
+        if name in stages:
+            continue
+        stages[name] = _resolve(name, declared[name])
+        if targets:
+            todo += [u for u in stages[name].upstream if u in declared]
     for name, sd in stages.items():
-        missing = [u for u in sd.upstream if u not in stages]
+        missing = [u for u in sd.upstream if u not in declared]
         if missing:
             raise DagError(
                 f"stage '{name}' needs upstream {missing}, which pipeline '{pcfg.name}' does not define "
-                f"(stages: {sorted(stages)})"
+                f"(stages: {sorted(declared)})"
             )
         absent = [k for k in sd.config if not _has(cfg, k)]
         if absent:

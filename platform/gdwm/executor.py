@@ -172,7 +172,7 @@ def _execute(sd, key, subset, env, results, tracker, scene=None, state=None) -> 
 
 
 class ScopedTracker(Tracker):
-    """A per-scene view of the stage run: metric names get the scene as a prefix."""
+    """A per-scene view of the stage run: metric and param names get the scene as a prefix."""
 
     def __init__(self, sink, run_id: str, prefix: str):
         super().__init__(sink, run_id)
@@ -186,6 +186,9 @@ class ScopedTracker(Tracker):
 
     def log_metrics(self, metrics, step=None):
         super().log_metrics({f"{self.prefix}{k}": v for k, v in metrics.items()}, step)
+
+    def log_params(self, params):
+        super().log_params({f"{self.prefix}{k}": v for k, v in params.items()})
 
 
 @ray.remote

@@ -168,7 +168,7 @@ def _run_key(pipe_name: str, order: list[str], rows: list[PlanRow]) -> str:
 
 
 def run_pipeline(cfg: DictConfig, dry_run: bool = False, live: bool | None = None) -> RunSummary:
-    pipe = load_pipeline(cfg)
+    pipe = load_pipeline(cfg, list(cfg.targets) or None)
     order = pipe.ancestors(list(cfg.targets)) if cfg.targets else list(pipe.order)
     meta = ensure_data(cfg)
     res = {k: dict(v) for k, v in OmegaConf.to_container(cfg.cluster.resources, resolve=True).items()}

@@ -108,3 +108,13 @@ def test_dag_error_exits_2_before_launch(tmp_path):
     assert r.returncode == 2
     assert "gdwm run: pipeline error: pipeline.stages.distill._target_: cannot import 'nowhere.distill'" in r.stderr
     assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "cache").exists()
+
+
+def test_targets_import_only_their_ancestors():
+    cfg = _cfg({"a": "a", "b": "b", "z": "nope"})
+    with pytest.raises(DagError, match=r"pipeline.stages.z._target_: cannot import"):
+        load_pipeline(cfg)
+    pipe = load_pipeline(cfg, ["b"])  # z is never needed, so never imported
+    assert pipe.order == ["a", "b"]
+    with pytest.raises(DagError, match=r"targets \['q'\] are not stages of pipeline 'p'"):
+        load_pipeline(cfg, ["q"])

@@ -179,7 +179,11 @@ def test_flipped_byte_is_detected_and_recomputed(first_run, tmp_path):
 def test_dry_run_prints_plan_without_running(first_run, tmp_path):
     toy = _copy(first_run, tmp_path)
     r = subprocess.run(
-        [*toy.args("stage.toy_diffusion.steps=3"), "--dry-run"], env=toy.env(), capture_output=True, text=True, timeout=120
+        [*toy.args("stage.toy_diffusion.steps=3"), "--dry-run"],
+        env=toy.env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     _ok(r)
     assert toy.executions() == []
@@ -238,7 +242,10 @@ def test_failing_stage_exits_1_naming_it_and_keeps_the_cache(first_run, tmp_path
 def test_scene_error_policy(first_run, tmp_path, policy):
     toy = _copy(first_run, tmp_path)
     r = toy.run(
-        "stage.toy_distill.dim=5", f"run.on_scene_error={policy}", "targets=[distill]", GDWM_TEST_FAIL="distill:scene-0002"
+        "stage.toy_distill.dim=5",
+        f"run.on_scene_error={policy}",
+        "targets=[distill]",
+        GDWM_TEST_FAIL="distill:scene-0002",
     )
     ex = toy.executions()
     assert sorted(ex) == [("distill", "scene-0000"), ("distill", "scene-0001"), ("distill", "scene-0002")]
