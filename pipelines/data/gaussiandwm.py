@@ -32,10 +32,10 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.data.config import DatasetConfig
-from pipelines.data.gaussiandwm_poses import read_pose_file, transform_gaussians
+from pipelines.data.gaussiandwm_poses import read_pose_file
 from pipelines.data.gaussiandwm_pth import concat, read_release_gaussians
 from pipelines.data.gaussiandwm_qa import DEFAULT_TASK_MAP, ReleaseRecord, map_task, read_qa_file
-from pipelines.data.layout import DataError, DatasetWriter, flat_pose, gaussians_relpath
+from pipelines.data.layout import DataError, DatasetWriter, flat_pose, gaussians_relpath, transform_gaussians
 from pipelines.data.scene_splits import split_scenes
 
 log = logging.getLogger(__name__)

@@ -495,3 +495,26 @@ def matrix_to_quat_wxyz(r: np.ndarray) -> np.ndarray:
 
 def flat_pose(m: np.ndarray) -> list[float]:
     return [float(v) for v in np.asarray(m, dtype=np.float64).reshape(16)]
+
+
+def transform_gaussians(arrays: dict[str, np.ndarray], a_to_b_44: np.ndarray) -> dict[str, np.ndarray]:
+    """Gaussians moved by a rigid transform: centres mapped, orientations pre-multiplied, the rest unchanged."""
+    m = np.asarray(a_to_b_44, dtype=np.float64)
+    xyz = arrays["xyz"].astype(np.float64) @ m[:3, :3].T + m[:3, 3]
+    q = _quat_mul(matrix_to_quat_wxyz(m[:3, :3]), arrays["rotation"].astype(np.float64))
+    return {**arrays, "xyz": xyz.astype(np.float32), "rotation": q.astype(np.float32)}
+
+
+def _quat_mul(a_4: np.ndarray, b_N4: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b for (w, x, y, z) quaternions (a broadcast over the rows of b)."""
+    aw, ax, ay, az = a_4
+    bw, bx, by, bz = b_N4.T
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=1,
+    )

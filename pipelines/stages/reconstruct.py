@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from gdwm.stage import StageContext, stage
-from pipelines.data.layout import gaussians_relpath, gaussians_table, matrix_to_quat_wxyz, write_arrow
+from pipelines.data.layout import gaussians_relpath, gaussians_table, transform_gaussians, write_arrow
 from pipelines.data.reader import GSQADataset
 from pipelines.recon.config import ReconstructConfig
 from pipelines.recon.init import aggregate_lidar, initial_gaussians, load_views
@@ -36,26 +36,7 @@ def split_views(n: int, every: int) -> tuple[list[int], list[int]]:
 
 def to_ego(world: dict[str, np.ndarray], ego2world_44: np.ndarray) -> dict[str, np.ndarray]:
     """Gaussians from the world frame into one frame's ego frame (centres and orientations)."""
-    w2e = np.linalg.inv(ego2world_44)
-    out = dict(world)
-    out["xyz"] = (world["xyz"] @ w2e[:3, :3].T + w2e[:3, 3]).astype(np.float32)
-    q = matrix_to_quat_wxyz(w2e[:3, :3])
-    out["rotation"] = _quat_mul(q, world["rotation"]).astype(np.float32)
-    return out
-
-
-def _quat_mul(a_4: np.ndarray, b_N4: np.ndarray) -> np.ndarray:
-    w1, x1, y1, z1 = a_4
-    w2, x2, y2, z2 = b_N4.T
-    return np.stack(
-        [
-            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        ],
-        axis=1,
-    )
+    return transform_gaussians(world, np.linalg.inv(ego2world_44))
 
 
 @stage("reconstruct", "1", config=["stage.reconstruct"], per_scene=True, resources="gpu")
