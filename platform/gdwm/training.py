@@ -9,10 +9,10 @@ A stage calls ``ctx.train(loop, config)``; ``loop(session)`` runs on every worke
             ...
             s.report(step, {"loss": loss}, state={"step": step, "model": model.state_dict()})
 
-With ``num_workers >= 1`` Ray Train runs a real worker group; ``FailureConfig(max_failures)``
-restarts it from the last reported checkpoint, and a re-run with the same key restores from
-the same storage path. ``num_workers = 0`` runs the loop in-process (no start-up cost) and
-gdwm persists the checkpoints itself so a re-run still resumes.
+With ``num_workers >= 1`` Ray Train runs a real worker group and ``FailureConfig(max_failures)``
+restarts it; ``num_workers = 0`` runs the loop in-process (no start-up cost). Either way rank 0
+also persists every reported checkpoint under the stage's checkpoint dir before reporting it,
+and ``restore`` reads that first, so a restarted worker or a re-run resumes from the newest one.
 """
 
 from __future__ import annotations
@@ -38,8 +38,8 @@ class TrainSession:
 
     config: dict
     tracker: Any
-    local_ckpt_dir: str | None
-    """In-process mode only: where gdwm persists checkpoints itself."""
+    local_ckpt_dir: str
+    """Where gdwm persists every reported checkpoint itself (shared storage on a cluster)."""
     checkpoint_every: int
 
     @property
@@ -51,14 +51,18 @@ class TrainSession:
         return ray.train.get_context().get_world_size()
 
     def restore(self) -> dict | None:
-        """The last reported state (tensors and plain values), loaded with weights_only=True."""
+        """The last reported state (tensors and plain values), loaded with weights_only=True.
+
+        gdwm's own copy comes first: Ray Train registers a reported checkpoint only when its controller next polls
+        the worker, so a worker killed right after ``report`` can take its newest checkpoints with it.
+        """
+        latest = latest_local_checkpoint(self.local_ckpt_dir)
+        if latest is not None:
+            return torch.load(latest / STATE_FILE, map_location="cpu", weights_only=True)
         ckpt = ray.train.get_checkpoint()
         if ckpt is not None:
             with ckpt.as_directory() as d:
                 return torch.load(Path(d) / STATE_FILE, map_location="cpu", weights_only=True)
-        latest = latest_local_checkpoint(self.local_ckpt_dir)
-        if latest is not None:
-            return torch.load(latest / STATE_FILE, map_location="cpu", weights_only=True)
         return None
 
     def should_checkpoint(self, step: int) -> bool:
@@ -75,11 +79,8 @@ class TrainSession:
         with tempfile.TemporaryDirectory() as d:
             if self.rank == 0:
                 torch.save(state, Path(d) / STATE_FILE)
-            if self.local_ckpt_dir is not None:
-                # In-process mode Ray keeps no copy: persist it, and report the persisted directory.
-                final = _persist_local(Path(d), Path(self.local_ckpt_dir), step)
-                ray.train.report({**metrics, "step": step}, checkpoint=Checkpoint.from_directory(str(final)))
-                return
+                # Persisted synchronously before Ray hears of it (see restore); in-process mode Ray keeps no copy.
+                _persist_local(Path(d), Path(self.local_ckpt_dir), step)
             ckpt = Checkpoint.from_directory(d) if self.rank == 0 else None
             ray.train.report({**metrics, "step": step}, checkpoint=ckpt)
 
@@ -121,7 +122,7 @@ def fit(ctx, loop: Callable[[TrainSession], None], loop_config: dict) -> TrainRe
         "loop": loop,
         "config": loop_config,
         "tracker": ctx.tracker,
-        "local_ckpt_dir": str(ctx.checkpoint_dir / "local") if local else None,
+        "local_ckpt_dir": str(ctx.checkpoint_dir / "steps"),
         "checkpoint_every": int(settings.get("checkpoint_every", 1)),
     }
     scaling = ScalingConfig(
@@ -148,10 +149,12 @@ class TrainResult:
     metrics: dict
 
 
-def _final_state(result: ray.train.Result, local_dir: str | None) -> dict | None:
+def _final_state(result: ray.train.Result, local_dir: str) -> dict | None:
+    """The last reported state: gdwm's own copy (always written, also when the loop had nothing left to do)."""
+    latest = latest_local_checkpoint(local_dir)
+    if latest is not None:
+        return torch.load(latest / STATE_FILE, map_location="cpu", weights_only=True)
     if result.checkpoint is not None:
         with result.checkpoint.as_directory() as d:
             return torch.load(Path(d) / STATE_FILE, map_location="cpu", weights_only=True)
-    # A resumed run whose loop had nothing left to do reports nothing: its last state is on disk.
-    latest = latest_local_checkpoint(local_dir)
-    return torch.load(latest / STATE_FILE, map_location="cpu", weights_only=True) if latest else None
+    return None
