@@ -13,41 +13,14 @@ import torch
 from gdwm.stage import StageContext, UpstreamOutput
 from pipelines.data.reader import gaussians_from_table, read_arrow
 from pipelines.distill.config import DistillConfig
-from pipelines.recon.config import ReconstructConfig
 from pipelines.stages.distill import distill, load_encoder
-from pipelines.stages.reconstruct import reconstruct
-from tests.pipelines.recon.test_reconstruct import Recorder
+from tests.pipelines.recon.test_reconstruct import Recorder, run_tiny_reconstruct
 
 
 @pytest.fixture(scope="module")
 def reconstructed(synth_small, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("rec")
-    cfg = asdict(
-        ReconstructConfig(
-            iterations=40,
-            max_gaussians=2500,
-            voxel_m=0.4,
-            densify_from=10,
-            densify_until=30,
-            densify_every=10,
-            opacity_reset_every=0,
-            min_psnr_db=0.0,
-        )
-    )
-    ctx = StageContext(
-        "reconstruct",
-        "r" * 64,
-        {"stage.reconstruct": cfg},
-        out,
-        {},
-        Path(synth_small),
-        "fp",
-        Recorder(),
-        out / "ck",
-        {},
-        scene="scene-0000",
-    )
-    reconstruct.fn(ctx)
+    run_tiny_reconstruct(synth_small, out, min_psnr_db=0.0)
     return out
 
 

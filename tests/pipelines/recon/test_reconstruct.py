@@ -92,7 +92,8 @@ def test_nan_loss_names_the_view(synth_small):
         t.step(v)
 
 
-def test_reconstruct_stage_on_a_tiny_scene(synth_small, tmp_path):
+def run_tiny_reconstruct(data: Path, out: Path, min_psnr_db: float) -> tuple[dict, Recorder]:
+    """The reconstruct stage on scene-0000 of ``data`` with a seconds-sized budget (shared with the distill tests)."""
     cfg = asdict(
         ReconstructConfig(
             iterations=40,
@@ -102,26 +103,30 @@ def test_reconstruct_stage_on_a_tiny_scene(synth_small, tmp_path):
             densify_until=30,
             densify_every=10,
             opacity_reset_every=0,
-            min_psnr_db=30.0,
+            min_psnr_db=min_psnr_db,
         )
     )
     rec = Recorder()
-    out = tmp_path / "out"
-    out.mkdir()
+    out.mkdir(exist_ok=True)
     ctx = StageContext(
         "reconstruct",
         "k" * 64,
         {"stage.reconstruct": cfg},
         out,
         {},
-        Path(synth_small),
+        Path(data),
         "fp",
         rec,
-        tmp_path / "ck",
+        out / "ck",
         {},
         scene="scene-0000",
     )
-    extra = reconstruct.fn(ctx)
+    return reconstruct.fn(ctx), rec
+
+
+def test_reconstruct_stage_on_a_tiny_scene(synth_small, tmp_path):
+    out = tmp_path / "out"
+    extra, rec = run_tiny_reconstruct(synth_small, out, min_psnr_db=30.0)
     qc = json.loads((out / "qc.json").read_text())
     losses = [m["loss"] for step, m in rec.metrics if step is not None and "loss" in m]
     assert losses[-1] < losses[0]  # it learns
