@@ -15,5 +15,7 @@ class DatasetConfig:
     """Where the published dataset lives (a local directory)."""
     builder: str = "???"
     """Dotted path of ``build(cfg, root, source, overwrite) -> Path`` that produces this dataset."""
+    needs_source: bool = True
+    """Whether ``build`` reads an input directory (``source=``); one that does not is generated on demand."""
     summarizer: str = "pipelines.data.summary.summarize"
     """Dotted path of ``summarize(root) -> dict`` used by ``gdwm data info``."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import ray
 from rich.table import Table
@@ -24,7 +24,6 @@ class Item:
     ended: float | None = None
     key: str = ""
     run_id: str = ""
-    extra: dict = field(default_factory=dict)
 
     @property
     def wall(self) -> float | None:

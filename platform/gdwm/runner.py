@@ -77,7 +77,7 @@ def ensure_data(cfg: DictConfig) -> dict:
     """The dataset's meta; a dataset that needs no source (synthetic) is generated first if absent."""
     root = Path(cfg.data.root)
     if not (root / "dataset.json").is_file():
-        if cfg.source is None and "synth" in cfg.data.builder:
+        if cfg.source is None and not cfg.data.needs_source:
             console.print(f"generating {cfg.data.name} at {root} ...")
             get_method(cfg.data.builder)(cfg.data, root=root, source=None, overwrite=cfg.overwrite)
         else:

@@ -20,6 +20,8 @@ class SynthConfig(DatasetConfig):
     """Dataset name; also the folder under ``<workdir>/data/``."""
     builder: str = "pipelines.data.synth.build.build"
     """Dotted path of the generator."""
+    needs_source: bool = False
+    """Generated from the seed: no input directory, so `gdwm run` makes it when absent."""
     num_scenes: int = 4
     """Scenes to generate (``scene-0000`` ...)."""
     num_frames: int = 10
