@@ -254,6 +254,21 @@ def open_tracking(cfg_tracking: Any, owner_tags: Mapping[str, str] | None = None
         try:
             ray.get(actor.close.remote())
         finally:
-            ray.kill(actor)
+            ray.kill(actor, no_restart=True)
+            _wait_until_dead(actor)
 
     return actor, close
+
+
+def _wait_until_dead(actor: Any, timeout_s: float = 60.0) -> None:
+    """``ray.kill`` only asks for the kill; the sqlite store is free for another writer once the actor is gone."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            ray.get(actor.__ray_ready__.remote(), timeout=5.0)
+        except ray.exceptions.RayActorError:
+            return
+        except ray.exceptions.GetTimeoutError:
+            continue
+        time.sleep(0.05)
+    raise RuntimeError(f"tracking actor {actor} still answers {timeout_s:.0f} s after ray.kill")
