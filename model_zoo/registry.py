@@ -16,7 +16,15 @@ from typing import Any
 
 _BUILDERS: dict[tuple[str, str], Callable[..., Any]] = {}
 # Modules that register the shipped variants; imported on first lookup so importing model_zoo stays cheap.
-_SHIPPED: tuple[str, ...] = ("model_zoo.encoders.daisy", "model_zoo.encoders.qwen3_vl_vision", "model_zoo.feature_ae")
+_SHIPPED: tuple[str, ...] = (
+    "model_zoo.encoders.daisy",
+    "model_zoo.encoders.qwen3_vl_vision",
+    "model_zoo.feature_ae",
+    "model_zoo.llm.qwen3_vl",
+    "model_zoo.adapter",
+    "model_zoo.alignment",
+    "model_zoo.selectors",
+)
 
 
 class UnknownVariant(KeyError):

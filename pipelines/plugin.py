@@ -6,14 +6,27 @@ from hydra.core.config_store import ConfigStore
 
 
 def register(cs: ConfigStore) -> None:
+    from model_zoo.adapter import FineAdapterConfig, ProjectionConfig
+    from model_zoo.alignment import AlignmentConfig
+    from model_zoo.llm.qwen3_vl import LLMConfig
+    from model_zoo.selectors import SelectorConfig
     from pipelines.data.gaussiandwm import ReleaseConfig
     from pipelines.data.nuscenes import NuScenesConfig
     from pipelines.data.synth.config import SynthConfig
     from pipelines.distill.config import DistillConfig
     from pipelines.recon.config import ReconstructConfig
+    from pipelines.understanding.config import LoraStageConfig, TokenizerStageConfig, WorldConfig
 
     cs.store(group="schema/data", name="synthetic_mini", node=SynthConfig)
     cs.store(group="schema/data", name="nuscenes", node=NuScenesConfig)
     cs.store(group="schema/data", name="gaussiandwm_release", node=ReleaseConfig)
     cs.store(group="schema/stage", name="reconstruct", node=ReconstructConfig)
     cs.store(group="schema/stage", name="distill", node=DistillConfig)
+    cs.store(group="schema/stage", name="tokenizer", node=TokenizerStageConfig)
+    cs.store(group="schema/stage", name="lora", node=LoraStageConfig)
+    cs.store(group="schema/model", name="world", node=WorldConfig)
+    cs.store(group="schema/model", name="selector", node=SelectorConfig)
+    cs.store(group="schema/model", name="projection", node=ProjectionConfig)
+    cs.store(group="schema/model", name="fine_adapter", node=FineAdapterConfig)
+    cs.store(group="schema/model", name="alignment", node=AlignmentConfig)
+    cs.store(group="schema/model", name="llm", node=LLMConfig)

@@ -1,0 +1,34 @@
+"""lora (stage 2): peft LoRA on the LLM with the Gaussian adapter trainable; ``mode: zero_shot`` trains nothing
+and drops the Gaussian tokens (tab:qa-ablation-conference, first row). Output as the tokenizer stage's, plus
+``lora/`` (the peft adapter)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from gdwm.stage import StageContext, stage
+from pipelines.data.reader import GSQADataset
+from pipelines.understanding.config import LoraStageConfig
+from pipelines.understanding.data import load_samples
+from pipelines.understanding.model import load_world_model
+from pipelines.understanding.stage_common import MODEL_CONFIG, components, finish, log_skipped, run_training
+
+MODES = ("train", "zero_shot")
+
+
+@stage("lora", "1", config=[*MODEL_CONFIG, "stage.lora"], upstream=["tokenizer", "distill"], resources="train")
+def lora(ctx: StageContext) -> dict:
+    cfg = LoraStageConfig(**ctx.cfg("stage.lora"))
+    if cfg.mode not in MODES:
+        raise ValueError(f"stage.lora.mode: unknown mode '{cfg.mode}' (one of {list(MODES)})")
+    init = ctx.upstream["tokenizer"].path
+    scene_dirs = dict(ctx.upstream["distill"].scenes)
+    if cfg.mode == "zero_shot":
+        model = load_world_model(init)
+        model.comp = replace(model.comp, world=replace(model.comp.world, gaussian_tokens=False))
+        return finish(ctx, model, cfg, scene_dirs, {"train_samples": 0, "trained": 0.0})
+    gaussian = components(ctx).world.gaussian_tokens
+    train, skipped = load_samples(GSQADataset(ctx.data_root), "train", scene_dirs, need_gaussians=gaussian)
+    log_skipped(ctx, "train", skipped)
+    model = run_training(ctx, "lora", init, cfg, scene_dirs)
+    return finish(ctx, model, cfg, scene_dirs, {"train_samples": len(train), "trained": 1.0})

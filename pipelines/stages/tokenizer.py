@@ -1,0 +1,38 @@
+"""tokenizer (stage 1): the LLM frozen; feature decoders (when distillation is on), projection and fine adapter
+train with L_LM + lambda_KL alpha(t) L_KL (Sec. Scene Understanding with Gaussian World Tokens, Training Strategy).
+
+The tiny LLM flavor is built here (a random Qwen3-VL config and a byte-level BPE tokenizer trained on the training
+split's QA text) and saved with the model, so every later stage reads the same one. Output: a saved world model
+(``pipelines.understanding.model``), ``metrics.json`` and ``val_predictions.parquet``.
+"""
+
+from __future__ import annotations
+
+from gdwm.stage import StageContext, stage
+from model_zoo import registry
+from model_zoo.llm.qwen3_vl import WorldLLM
+from pipelines.data.reader import GSQADataset
+from pipelines.understanding.config import TokenizerStageConfig
+from pipelines.understanding.data import load_samples, training_corpus
+from pipelines.understanding.model import WORLD_FILE, build_world_model, load_world_model
+from pipelines.understanding.stage_common import MODEL_CONFIG, components, finish, log_skipped, run_training
+
+
+@stage("tokenizer", "1", config=[*MODEL_CONFIG, "stage.tokenizer"], upstream=["distill"], resources="train")
+def tokenizer(ctx: StageContext) -> dict:
+    comp = components(ctx)
+    cfg = TokenizerStageConfig(**ctx.cfg("stage.tokenizer"))
+    scene_dirs = dict(ctx.upstream["distill"].scenes)
+    ds = GSQADataset(ctx.data_root)
+    train, skipped = load_samples(ds, "train", scene_dirs, need_gaussians=comp.world.gaussian_tokens)
+    log_skipped(ctx, "train", skipped)
+    init = ctx.checkpoint_dir / "init"
+    if not (init / WORLD_FILE).is_file():  # a resumed attempt reuses the same initial model
+        if comp.llm.tiny:
+            llm = registry.build("llm", comp.llm.name, comp.llm, corpus=training_corpus(train))
+        else:
+            llm = WorldLLM.from_pretrained(comp.llm.path, comp.llm)
+        build_world_model(comp, llm, scene_dirs).save(init, save_llm=True)
+    trains = comp.world.gaussian_tokens and cfg.steps > 0  # image-only models have nothing to train in stage 1
+    model = run_training(ctx, "tokenizer", init, cfg, scene_dirs) if trains else load_world_model(init)
+    return finish(ctx, model, cfg, scene_dirs, {"train_samples": len(train), "trained": float(trains)})

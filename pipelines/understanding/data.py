@@ -1,0 +1,169 @@
+"""QA samples of the world model: instruction, answer, the frame's distilled Gaussians, images, ego trajectory.
+
+Legend: ``N`` Gaussians, ``T`` waypoints, ``C`` code width d_z.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections import Counter, OrderedDict
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pipelines.data.layout import GAUSS_TOKEN, DataError
+from pipelines.data.reader import GSQADataset, gaussians_from_table, read_arrow
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class QASample:
+    sample_id: str
+    scene: str
+    frame: int
+    task: str
+    instruction: str
+    answer: str
+    views: tuple[str, ...]
+
+
+def _turns(conversations: Sequence[Mapping], sample_id: str) -> tuple[str, str]:
+    """(human, gpt) of a one-turn conversation, in our ``from``/``value`` or the release's ``role``/``content``."""
+    human = [
+        c.get("value", c.get("content")) for c in conversations if c.get("from", c.get("role")) in ("human", "user")
+    ]
+    gpt = [
+        c.get("value", c.get("content")) for c in conversations if c.get("from", c.get("role")) in ("gpt", "assistant")
+    ]
+    if not human or not gpt:
+        raise DataError(f"{sample_id}: conversation needs a human and a gpt turn, got {list(conversations)}")
+    return human[0], gpt[0]
+
+
+def load_samples(
+    ds: GSQADataset, split: str, scene_dirs: Mapping[str, Path], *, need_gaussians: bool
+) -> tuple[list[QASample], Counter]:
+    """The ``split`` QA of ``ds`` whose frame has Gaussians (when ``need_gaussians``), and why others were skipped.
+
+    Frames that reconstruction QC excluded, and scenes whose upstream failed, have no Gaussian file: their samples
+    are counted under ``skipped`` (never silently dropped) and the caller logs the counts.
+    """
+    samples, skipped = [], Counter()
+    for row in ds.qa(split=split).to_pylist():
+        sid = row["sample_id"]
+        human, gpt = _turns(row["conversations"], sid)
+        s = QASample(sid, row["scene_token"], int(row["frame_idx"]), row["task"], human, gpt, tuple(row["views"]))
+        if need_gaussians:
+            if s.scene not in scene_dirs:
+                skipped["scene_without_gaussians"] += 1
+                continue
+            if not gaussians_path(scene_dirs[s.scene], s.frame).is_file():
+                skipped["frame_excluded_by_qc"] += 1
+                continue
+            if GAUSS_TOKEN not in s.instruction:
+                skipped["instruction_without_gauss_placeholder"] += 1
+                continue
+        samples.append(s)
+    return samples, skipped
+
+
+def gaussians_path(scene_dir: Path, frame: int) -> Path:
+    return scene_dir / "gaussians" / f"{frame:05d}.arrow"
+
+
+def task_probabilities(counts: Mapping[str, int], alpha: float) -> dict[str, float]:
+    """Eq. P_m = n_m^alpha_s / sum_k n_k^alpha_s (Sec. Scene Understanding with Gaussian World Tokens)."""
+    weights = {m: float(n) ** alpha for m, n in counts.items() if n > 0}
+    total = sum(weights.values())
+    return {m: w / total for m, w in weights.items()}
+
+
+class TaskSampler:
+    """Batches drawn with task-aware probabilities; batch ``step`` depends only on (seed, step), so a resumed run
+    draws exactly the batches an uninterrupted one would have."""
+
+    def __init__(self, samples: Sequence[QASample], alpha: float, seed: int):
+        if not samples:
+            raise DataError(
+                "task-aware sampling: no training samples (every QA sample was skipped or the split is empty)"
+            )
+        self.by_task: dict[str, list[int]] = {}
+        for i, s in enumerate(samples):
+            self.by_task.setdefault(s.task, []).append(i)
+        self.tasks = sorted(self.by_task)
+        probs = task_probabilities({t: len(self.by_task[t]) for t in self.tasks}, alpha)
+        self.probs = np.array([probs[t] for t in self.tasks])
+        self.seed = seed
+
+    def batch(self, step: int, size: int) -> list[int]:
+        rng = np.random.default_rng([self.seed, step])
+        tasks = rng.choice(len(self.tasks), size=size, p=self.probs)
+        return [int(rng.choice(self.by_task[self.tasks[t]])) for t in tasks]
+
+
+def ego_trajectory_xy(ego2world_F44: np.ndarray, frame: int, frames: int) -> np.ndarray:
+    """[T, 2] ego-path prior in the current ego frame: the last ``frames`` ego positions and as many more ahead at the
+    last step's velocity. Built from the past only, so planning answers never leak into the selection."""
+    lo = max(0, frame - frames)
+    world_to_ego = np.linalg.inv(ego2world_F44[frame])
+    past = np.einsum("ij,fj->fi", world_to_ego, ego2world_F44[lo : frame + 1, :, 3])[:, :2]
+    step = past[-1] - past[-2] if len(past) >= 2 else np.zeros(2)
+    ahead = past[-1] + step * np.arange(1, frames + 1)[:, None]
+    return np.concatenate([past, ahead]).astype(np.float32)
+
+
+class FrameStore:
+    """Per-frame inputs, loaded on first use and kept in a small LRU (a sweep's trials read the same frames)."""
+
+    def __init__(
+        self, ds: GSQADataset, scene_dirs: Mapping[str, Path], weather: str, trajectory_frames: int, capacity: int = 256
+    ):
+        self.ds, self.scene_dirs, self.weather, self.trajectory_frames = (
+            ds,
+            dict(scene_dirs),
+            weather,
+            trajectory_frames,
+        )
+        self.capacity = capacity
+        self._gauss: OrderedDict[tuple[str, int], dict[str, torch.Tensor]] = OrderedDict()
+        self._poses: dict[str, np.ndarray] = {}
+
+    def gaussians(self, scene: str, frame: int) -> dict[str, torch.Tensor]:
+        """xyz/scale [N,3], rotation [N,4], opacity [N], code [N,C] of one frame (ego frame), plus trajectory [T,2]."""
+        key = (scene, frame)
+        if key in self._gauss:
+            self._gauss.move_to_end(key)
+            return self._gauss[key]
+        path = gaussians_path(self.scene_dirs[scene], frame)
+        arrays = gaussians_from_table(read_arrow(path, f"{scene}/frame_{frame:03d} distilled gaussians"))
+        if scene not in self._poses:
+            self._poses[scene] = self.ds.scene(scene).ego_poses
+        out = {
+            k: torch.from_numpy(np.array(arrays[k], dtype=np.float32)) for k in ("xyz", "scale", "rotation", "opacity")
+        }
+        out["code"] = torch.from_numpy(np.array(arrays["feature"], dtype=np.float32))
+        out["trajectory"] = torch.from_numpy(ego_trajectory_xy(self._poses[scene], frame, self.trajectory_frames))
+        self._gauss[key] = out
+        if len(self._gauss) > self.capacity:
+            self._gauss.popitem(last=False)
+        return out
+
+    def images(self, sample: QASample) -> list[np.ndarray]:
+        frame = self.ds.scene(sample.scene).frame(sample.frame)
+        return [frame.image(cam, self.weather) for cam in sample.views]
+
+
+def training_corpus(samples: Sequence[QASample]) -> list[str]:
+    """Text the tiny flavor's BPE tokenizer is trained on: the training split's instructions and answers."""
+    return [t for s in samples for t in (s.instruction, s.answer)]
+
+
+def read_json(path: Path) -> dict:
+    if not path.is_file():
+        raise DataError(f"missing file {path}")
+    return json.loads(path.read_text())

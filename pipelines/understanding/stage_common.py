@@ -1,0 +1,72 @@
+"""What the tokenizer and lora stages share: config subtrees, the train call, the held-out monitor, outputs."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+from gdwm.stage import StageContext
+from pipelines.data.reader import GSQADataset
+from pipelines.understanding.config import TrainConfig
+from pipelines.understanding.data import FrameStore, load_samples
+from pipelines.understanding.infer import write_predictions
+from pipelines.understanding.model import Components, WorldModel, load_world_model
+from pipelines.understanding.train import evaluate, train_loop
+
+MODEL_KEYS = ("world", "selector", "projection", "fine_adapter", "alignment", "llm")
+MODEL_CONFIG = [f"model.{k}" for k in MODEL_KEYS]
+
+
+def components(ctx: StageContext) -> Components:
+    return Components.from_model_cfg({k: ctx.cfg(f"model.{k}") for k in MODEL_KEYS})
+
+
+def log_skipped(ctx: StageContext, split: str, skipped: dict) -> None:
+    """Samples a stage could not use are counted and logged, never dropped silently."""
+    for reason, n in sorted(skipped.items()):
+        ctx.tracker.log_metrics({f"skipped/{split}/{reason}": float(n)})
+
+
+def run_training(
+    ctx: StageContext, stage: str, init_dir: Path, cfg: TrainConfig, scene_dirs: dict[str, Path]
+) -> WorldModel:
+    """Train from ``init_dir`` under Ray Train and return the model with the final state loaded."""
+    result = ctx.train(
+        train_loop,
+        {
+            "stage": stage,
+            "init_dir": str(init_dir),
+            "data_root": str(ctx.data_root),
+            "scene_dirs": {k: str(v) for k, v in scene_dirs.items()},
+            "train": asdict(cfg),
+        },
+    )
+    model = load_world_model(init_dir)
+    if stage == "lora":
+        from pipelines.understanding.config import LoraStageConfig
+
+        model.add_lora(LoraStageConfig(**asdict(cfg)))
+    if result.state is None:
+        raise RuntimeError(f"{stage}: training reported no checkpoint")
+    model.load_adapter_state(result.state["adapter"])
+    if result.state.get("lora"):
+        model.load_lora_state(result.state["lora"])
+    return model
+
+
+def finish(ctx: StageContext, model: WorldModel, cfg: TrainConfig, scene_dirs: dict[str, Path], extra: dict) -> dict:
+    """Held-out monitor, then the saved model and its metrics in the stage output."""
+    ds = GSQADataset(ctx.data_root)
+    val, skipped = load_samples(ds, "val", scene_dirs, need_gaussians=model.gaussian_tokens)
+    log_skipped(ctx, "val", skipped)
+    store = FrameStore(ds, scene_dirs, model.comp.world.weather, model.comp.world.trajectory_frames)
+    ev = evaluate(model, val, store, cfg)
+    ctx.tracker.log_metrics(ev["metrics"])
+    if ev["predictions"] is not None:
+        write_predictions(ev["predictions"], ctx.out_dir / "val_predictions.parquet")
+    model.save(ctx.out_dir, save_llm=model.comp.llm.tiny or model.comp.llm.path is None)
+    n_val = 0 if ev["predictions"] is None else ev["predictions"].num_rows
+    metrics = {**extra, **ev["metrics"], "val_samples": n_val}
+    (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True))
+    return metrics
