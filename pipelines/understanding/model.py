@@ -72,6 +72,16 @@ class Components:
         }
 
 
+PICKED = ("xyz", "scale", "rotation", "opacity", "code")
+
+
+def _gather(t_N: torch.Tensor, index_K: torch.Tensor, mask_K: torch.Tensor, fill: float) -> torch.Tensor:
+    """``t_N[index_K]`` with the padding slots set to ``fill`` (an empty frame has nothing to index)."""
+    picked = t_N[index_K] if len(t_N) else torch.zeros((len(index_K), *t_N.shape[1:]), dtype=t_N.dtype)
+    keep = mask_K.view(-1, *([1] * (picked.dim() - 1)))
+    return torch.where(keep, picked, torch.full_like(picked, fill))
+
+
 def _scene_key(scene: str) -> str:
     """ModuleDict keys may not contain dots."""
     return re.sub(r"[^0-9A-Za-z_]", "_", scene)
@@ -156,32 +166,19 @@ class WorldModel(nn.Module):
     def candidates(self, samples: Sequence[QASample], store: FrameStore, e_BH: torch.Tensor) -> dict[str, torch.Tensor]:
         """Coarse selection per sample, gathered into [B, K_c, ...] tensors with the padding mask."""
         device = e_BH.device
-        out: dict[str, list[torch.Tensor]] = {k: [] for k in ("xyz", "scale", "rotation", "opacity", "feature", "mask")}
+        rows = []
         for b, s in enumerate(samples):
             g = store.gaussians(s.scene, s.frame)
             inputs = SelectorInputs(g["xyz"], g["scale"], g["rotation"], g["opacity"], trajectory=g["trajectory"])
             if self.selector.needs_similarity:
                 inputs.similarity = self._text_similarity(s.scene, g, e_BH[b])
             sel = self.selector(inputs, generator=torch.Generator().manual_seed(self.comp.selector.seed))
-            idx, mask = sel.index, sel.mask
-            for k in ("xyz", "scale", "rotation"):
-                out[k].append(
-                    g[k][idx].to(device) if len(g[k]) else torch.zeros(len(idx), g[k].shape[1], device=device)
-                )
-            out["opacity"].append(
-                g["opacity"][idx].to(device) if len(g["opacity"]) else torch.zeros(len(idx), device=device)
-            )
-            code = g["code"][idx] if len(g["code"]) else torch.zeros(len(idx), g["code"].shape[1])
-            out["feature"].append(self._decoded(s.scene, code.to(device)))
-            out["mask"].append(mask.to(device))
-        stacked = {k: torch.stack(v) for k, v in out.items()}
-        # Padding slots hold Gaussian 0's values; zero them so nothing depends on what index 0 happens to be.
-        keep = stacked["mask"]
-        for k in ("xyz", "scale", "rotation", "opacity", "feature"):
-            v = stacked[k]
-            stacked[k] = torch.where(keep.view(*keep.shape, *([1] * (v.dim() - 2))), v, torch.zeros_like(v))
-        stacked["scale"] = torch.where(keep[..., None], stacked["scale"], torch.ones_like(stacked["scale"]))
-        return stacked
+            # Padding slots are neutral (unit scale, zeros elsewhere), never a copy of whatever Gaussian 0 is.
+            row = {k: _gather(g[k], sel.index, sel.mask, 1.0 if k == "scale" else 0.0) for k in PICKED}
+            row["feature"] = self._decoded(s.scene, row.pop("code").to(device)) * sel.mask[:, None].to(device)
+            row["mask"] = sel.mask
+            rows.append(row)
+        return {k: torch.stack([r[k] for r in rows]).to(device) for k in rows[0]}
 
     @torch.no_grad()
     def _text_similarity(self, scene: str, g: dict[str, torch.Tensor], e_H: torch.Tensor) -> torch.Tensor:

@@ -269,7 +269,6 @@ def test_samples_without_images_train_and_generate(llm):
     assert len(both) == 2 and both[1:] == llm.generate(collate([q], llm.pad_token_id, "left"), max_new_tokens=5)
 
 
-@pytest.mark.filterwarnings("ignore:`is_gradient_checkpointing` is deprecated:FutureWarning")
 def test_lora_wrapped_model_keeps_injection_and_trains_only_adapters_and_z():
     from peft import LoraConfig, get_peft_model
 
