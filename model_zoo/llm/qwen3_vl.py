@@ -338,6 +338,19 @@ class WorldLLM:
         with self.inject(z_BFH):
             return self.model(**inputs)
 
+    @torch.no_grad()
+    def hidden_states(
+        self,
+        batch: dict[str, torch.Tensor],
+        z_BFH: torch.Tensor | None = None,
+        pixel_values: torch.Tensor | None = None,
+        image_grid_thw: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """``[B, L, H]`` last-layer hidden states of the prompt (the generation branch's C_L = Phi_LLM(Z_G, q))."""
+        inputs = self._inputs(batch, z_BFH, pixel_values, image_grid_thw)
+        with self.inject(z_BFH):
+            return self.model(**inputs, output_hidden_states=True).hidden_states[-1]
+
     def loss(
         self,
         batch: dict[str, torch.Tensor],

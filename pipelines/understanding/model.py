@@ -251,6 +251,15 @@ class WorldModel(nn.Module):
         z = self.world_tokens(samples, store, enc)[0] if enc["gaussian"] else None
         return self.llm.generate(enc["batch"], z, enc["pixel_values"], enc["image_grid_thw"], max_new_tokens)
 
+    @torch.no_grad()
+    def condition(self, samples: Sequence[QASample], store: FrameStore) -> tuple[torch.Tensor, torch.Tensor]:
+        """C_L = Phi_LLM(Z_G, q): the LLM's last hidden states over each prompt ``[B, L, H]`` and their mask (the
+        high-level condition of the generation branch)."""
+        enc = self.encode(samples, store, with_answer=False)
+        z = self.world_tokens(samples, store, enc)[0] if enc["gaussian"] else None
+        hidden = self.llm.hidden_states(enc["batch"], z, enc["pixel_values"], enc["image_grid_thw"])
+        return hidden.float(), enc["batch"]["attention_mask"].bool().to(hidden.device)
+
     # ---- LoRA, parameters, persistence -------------------------------------------------------------------------
     def add_lora(self, cfg: LoraStageConfig) -> None:
         """peft LoRA on the language model's ``target_modules`` (injected in place; the vision tower gets none)."""

@@ -167,3 +167,20 @@ def test_an_empty_frame_gives_padding_tokens_and_a_finite_loss(synth_small, dist
     assert z.shape == (1, K_F, 32) and not z_mask.any() and torch.equal(z, torch.zeros_like(z))
     loss, parts = model([s], store, 0)
     assert torch.isfinite(loss) and parts["loss_kl"] == 0.0  # nothing to align: no valid world token
+
+
+def test_condition_gives_the_prompt_hidden_states_that_depend_on_the_scene(synth_small, distilled16, tiny_llm_dir):
+    comp = components({}, "driving_aware", "query_xattn", "kl")
+    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), distilled16)
+    model.eval()
+    ds = GSQADataset(synth_small)
+    samples, _ = load_samples(ds, "train", distilled16, need_gaussians=True)
+    store = FrameStore(ds, distilled16, "clear", 3)
+    a, b = samples[0], samples[-1]
+    assert (a.scene, a.frame) != (b.scene, b.frame)
+    h, mask = model.condition([a, b], store)
+    enc = model.encode([a, b], store, with_answer=False)
+    assert h.shape == (*enc["batch"]["input_ids"].shape, 32) and torch.equal(
+        mask, enc["batch"]["attention_mask"].bool()
+    )
+    assert not torch.allclose(h[0, mask[0]][-1], h[1, mask[1]][-1])  # different frame: different Z_G and images
