@@ -24,6 +24,7 @@ _SHIPPED: tuple[str, ...] = (
     "model_zoo.adapter",
     "model_zoo.alignment",
     "model_zoo.selectors",
+    "model_zoo.diffusion.rgbd_dual",
 )
 
 

@@ -8,12 +8,15 @@ from hydra.core.config_store import ConfigStore
 def register(cs: ConfigStore) -> None:
     from model_zoo.adapter import FineAdapterConfig, ProjectionConfig
     from model_zoo.alignment import AlignmentConfig
+    from model_zoo.diffusion.rgbd_dual import DiffusionConfig
     from model_zoo.llm.qwen3_vl import LLMConfig
     from model_zoo.selectors import SelectorConfig
     from pipelines.data.gaussiandwm import ReleaseConfig
     from pipelines.data.nuscenes import NuScenesConfig
     from pipelines.data.synth.config import SynthConfig
     from pipelines.distill.config import DistillConfig
+    from pipelines.generation.cli import EditArgs, GenerateArgs
+    from pipelines.generation.config import DiffusionStageConfig, VaeStageConfig
     from pipelines.recon.config import ReconstructConfig
     from pipelines.understanding.config import LoraStageConfig, TokenizerStageConfig, WorldConfig
 
@@ -30,3 +33,8 @@ def register(cs: ConfigStore) -> None:
     cs.store(group="schema/model", name="fine_adapter", node=FineAdapterConfig)
     cs.store(group="schema/model", name="alignment", node=AlignmentConfig)
     cs.store(group="schema/model", name="llm", node=LLMConfig)
+    cs.store(group="schema/stage", name="diffusion_vae", node=VaeStageConfig)
+    cs.store(group="schema/stage", name="diffusion", node=DiffusionStageConfig)
+    cs.store(group="schema/model", name="diffusion", node=DiffusionConfig)
+    cs.store(group="schema/args", name="generate", node=GenerateArgs)
+    cs.store(group="schema/args", name="edit", node=EditArgs)

@@ -159,7 +159,7 @@ def render_ego(
     backend: str = "auto",
 ) -> RenderOutput:
     """Rasterize ego-frame Gaussians (the layout's schema: activated values) into a camera given camera -> ego."""
-    t = {k: torch.as_tensor(np.asarray(gaussians[k], dtype=np.float32)) for k in ("xyz", "scale", "rotation", "color")}
+    t = {k: torch.from_numpy(np.array(gaussians[k], dtype=np.float32)) for k in ("xyz", "scale", "rotation", "color")}
     opacity = torch.as_tensor(np.asarray(gaussians["opacity"], dtype=np.float32).reshape(-1))
     with torch.no_grad():
         return rasterize(

@@ -11,6 +11,8 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cache
+from importlib.metadata import entry_points
 from pathlib import Path
 
 from hydra.utils import get_method
@@ -159,6 +161,40 @@ COMMANDS: dict[str, dict[str, Command]] = {
 }
 
 
+COMMAND_GROUP = "gdwm.commands"
+"""Entry-point group of plugin commands: ``name = "module:function"``, ``function(cfg, argv) -> int``; its
+arguments come from ``conf/args/<name>.yaml`` (selected as ``args=<name>``), its help from its docstring."""
+
+
+def _plugin_command(fn_path: str, name: str) -> Command:
+    def run(cfg: DictConfig, argv: list[str]) -> int | None:
+        return get_method(fn_path)(cfg, argv)
+
+    return Command(run, "", defaults=[f"args={name}"])
+
+
+@cache
+def _load_plugin_commands() -> None:
+    """Add the plugins' commands to COMMANDS (loaded lazily: an entry's module is imported only to run it)."""
+    for ep in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
+        if ep.name in COMMANDS:
+            raise ConfigError(f"plugin command '{ep.name}' ({ep.value}) clashes with a built-in command")
+        cmd = _plugin_command(ep.value.replace(":", "."), ep.name)
+        cmd.help = _first_doc_line(ep.value)
+        COMMANDS[ep.name] = {"": cmd}
+
+
+def _first_doc_line(value: str) -> str:
+    module, _, attr = value.partition(":")
+    try:
+        import importlib
+
+        doc = getattr(importlib.import_module(module), attr).__doc__ or ""
+    except Exception as e:  # a broken plugin must not take the whole CLI down
+        return f"(plugin failed to load: {e!r})"
+    return doc.strip().splitlines()[0] if doc.strip() else ""
+
+
 def _groups_help() -> str:
     lines = ["config groups (pick with GROUP=OPTION):"]
     for g in MAIN_GROUPS:
@@ -194,6 +230,7 @@ def _user_sets_group(overrides: list[str], group: str) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    _load_plugin_commands()
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(usage())
         return 0 if argv else 2
@@ -228,16 +265,17 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         err_console.print(f"gdwm: config error: {e}", markup=False)
         return 2
+    name = f"{command} {sub}".strip()
     try:
         return int(spec.run(cfg, overrides) or 0)
     except (CommandError, ValueError, OSError) as e:
         # Data and I/O errors carry a message naming the file/scene/key; GDWM_DEBUG=1 shows the traceback.
         if os.environ.get("GDWM_DEBUG"):
             raise
-        err_console.print(f"gdwm {command} {sub}: {type(e).__name__}: {e}", markup=False)
+        err_console.print(f"gdwm {name}: {type(e).__name__}: {e}", markup=False)
         return 1
     except KeyboardInterrupt:
-        err_console.print(f"gdwm {command} {sub}: interrupted", markup=False)
+        err_console.print(f"gdwm {name}: interrupted", markup=False)
         return 130
 
 

@@ -136,6 +136,8 @@ class GdwmConfig:
     """Model components and variants (groups ``model/<component>/``)."""
     targets: list[str] = field(default_factory=list)
     """Stages to produce; only they and their ancestors run. Empty = the whole pipeline."""
+    args: Any = field(default_factory=dict)
+    """Arguments of a plugin command (``conf/args/<command>.yaml``), e.g. ``gdwm generate args.shift_m=1``."""
     cache: CacheConfig = field(default_factory=CacheConfig)
     """Stage cache."""
     run: RunSettings = field(default_factory=RunSettings)

@@ -167,6 +167,19 @@ def _run_key(pipe_name: str, order: list[str], rows: list[PlanRow]) -> str:
     return h.hexdigest()
 
 
+def _cached_results(rows: list[PlanRow], cache: Cache) -> dict[str, StageResult]:
+    """Every stage's entry (local directory, per scene where it fans out) when the whole plan is cached."""
+    out: dict[str, StageResult] = {}
+    for r in rows:
+        path = str(cache.materialize(cache.lookup(r.stage, r.key, verify=False)))
+        if r.scene is None:
+            out[r.stage] = StageResult(r.stage, r.key, True, None, path=path)
+        else:
+            res = out.setdefault(r.stage, StageResult(r.stage, "", True, None, scenes={}))
+            res.scenes[r.scene] = (r.key, path)  # type: ignore[index]
+    return out
+
+
 def run_pipeline(cfg: DictConfig, dry_run: bool = False, live: bool | None = None) -> RunSummary:
     pipe = load_pipeline(cfg, list(cfg.targets) or None)
     order = pipe.ancestors(list(cfg.targets)) if cfg.targets else list(pipe.order)
@@ -192,8 +205,7 @@ def run_pipeline(cfg: DictConfig, dry_run: bool = False, live: bool | None = Non
     if all(r.status == "cached" for r in rows) and _verify_all(rows, env_cache=Cache(cfg.cache.uri)):
         # Nothing to run: no Ray, no tracking; a no-op re-run costs only the hash checks.
         console.print(f"all {len(rows)} stage outputs cached and verified; nothing to run")
-        keys = {r.stage: (r.key if r.scene is None else "") for r in rows}
-        return RunSummary(results={name: StageResult(name, key, True, None) for name, key in keys.items()})
+        return RunSummary(results=_cached_results(rows, Cache(cfg.cache.uri)))
     started = init_ray(cfg)
     sink, close = open_tracking(cfg.tracking)
     summary = RunSummary()

@@ -42,3 +42,14 @@ def test_no_arguments_prints_usage_and_exits_2():
     r = _gdwm()
     assert r.returncode == 2
     assert r.stdout.startswith("usage: gdwm <command>")
+
+
+def test_plugin_commands_are_listed_and_check_their_arguments(tmp_path):
+    r = _gdwm("--help")
+    assert "generate                   generate shifted / future views of a frame" in r.stdout
+    assert "edit                       edit a clip by instruction" in r.stdout
+    r = _gdwm("generate", f"workdir={tmp_path}")  # args.scene missing: nothing is launched
+    assert r.returncode == 1
+    assert "gdwm generate: CommandError: args.scene is required" in r.stderr
+    r = _gdwm("generate", f"workdir={tmp_path}", "args.sceen=x")
+    assert r.returncode == 2 and "args.sceen" in r.stderr

@@ -32,6 +32,7 @@ def test_root_config_composes_with_defaults(tmp_path):
         "tokenizer",
         "lora",
         "evaluate_qa",
+        "diffusion_vae",
         "diffusion",
         "evaluate_gen",
     ]

@@ -55,3 +55,68 @@ def test_gdwm_run_reconstruct_distill_tokenizer_lora(tmp_path):
     again = subprocess.run(args, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "nothing to run" in again.stdout
     assert Counter(x.data.tags.get("gdwm.stage") for x in client.search_runs([exp.experiment_id]))["distill"] == 1
+
+
+TINY = [
+    "stage/reconstruct=tiny",
+    "stage/distill=tiny",
+    "stage/tokenizer=tiny",
+    "stage/lora=tiny",
+    "stage/diffusion_vae=tiny",
+    "stage/diffusion=tiny",
+    "data.num_scenes=2",
+    "data.width=64",
+    "data.height=36",
+]
+
+
+def _gdwm(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "gdwm", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def test_diffusion_stage_then_generate_and_edit(tmp_path):
+    import json
+
+    from pipelines.data.reader import GSQADataset
+
+    r = _gdwm("run", f"workdir={tmp_path}", "targets=[diffusion]", *TINY)
+    assert r.returncode == 0, r.stderr[-4000:]
+    (entry,) = Cache(tmp_path / "cache").entries("diffusion")
+    files = {f.path for f in entry.files}
+    assert {"unet/config.json", "vae/config.json", "rgbd.json", "null_token.pt", "metrics.json"} <= files
+    assert any(p.startswith("samples/shift_1m/") and p.endswith(".png") for p in files)
+    metrics = json.loads((tmp_path / "cache" / "diffusion" / entry.key[:2] / entry.key / "metrics.json").read_text())
+    assert 0 < metrics["gen/shift_1m/psnr"] < 60 and metrics["gen/shift_1m/depth_absrel"] >= 0
+
+    g = _gdwm("generate", f"workdir={tmp_path}", *TINY, "args.scene=scene-0001", "args.frame=1",
+              "args.shifts_m=[-1,1]", "args.horizons_s=[1]")  # fmt: skip
+    assert g.returncode == 0, g.stderr[-4000:]
+    out = tmp_path / "generated" / "scene-0001_001_CAM_FRONT"
+    assert sorted(p.name for p in out.glob("*.png")) == sorted(
+        f"{n}{s}.png" for n in ("shift_-1m", "shift_1m", "future_1s") for s in ("", "_depth")
+    )
+    assert (out / "views.mp4").stat().st_size > 1000
+    assert "gen/shift_1m/psnr" in g.stdout
+
+    # remove the biggest vehicle in view: the edited region changes, the rest of the picture does not
+    frame = GSQADataset(tmp_path / "data" / "synthetic_mini").scene("scene-0001").frame(1)
+    boxes = [b for b in frame.boxes2d("CAM_FRONT") if "ped" not in b["instance_id"]]
+    vehicle = max(boxes, key=lambda b: (b["box"][2] - b["box"][0]) * (b["box"][3] - b["box"][1]))["instance_id"]
+    e = _gdwm("edit", f"workdir={tmp_path}", *TINY, "args.scene=scene-0001", "args.frame=1", "args.frames=2",
+              f"args.edit=Remove vehicle {vehicle} from the scene.")  # fmt: skip
+    assert e.returncode == 0, e.stderr[-4000:]
+    (edit_dir,) = (tmp_path / "edits").iterdir()
+    report = json.loads((edit_dir / "report.json").read_text())
+    assert report["frames"] == [1, 2] and report["edited_pixels"] > 0
+    assert report["mean_abs_change_in_edited_region"] > 2 * report["mean_abs_change_outside"]
+    assert (edit_dir / "edited.mp4").is_file() and len(list(edit_dir.glob("edited_00?.png"))) == 2
+
+    bad = _gdwm("edit", f"workdir={tmp_path}", *TINY, "args.scene=scene-0001", "args.frame=1",
+                "args.edit=Remove vehicle scene-0001-car-99 from the scene.")  # fmt: skip
+    assert bad.returncode == 1
+    assert "scene-0001/frame_001: no vehicle with instance id 'scene-0001-car-99'" in bad.stderr
+    runs = mlflow.MlflowClient(f"sqlite:///{tmp_path.resolve()}/mlflow.db").search_runs(
+        [mlflow.MlflowClient(f"sqlite:///{tmp_path.resolve()}/mlflow.db").get_experiment_by_name("gdwm").experiment_id],
+        "tags.`gdwm.kind` = 'edit'",
+    )
+    assert len(runs) == 1 and runs[0].data.metrics["edit/change_inside"] == report["mean_abs_change_in_edited_region"]

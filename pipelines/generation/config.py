@@ -1,0 +1,59 @@
+"""Settings of the generation stages (``conf/stage/{diffusion_vae,diffusion}/``). The model's own config is
+``model_zoo.diffusion.rgbd_dual.DiffusionConfig`` (``conf/model/diffusion/``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class VaeStageConfig:
+    """The tiny flavor's VAE, fitted once to the training views (RGB and pseudo-RGB depth) and then frozen."""
+
+    steps: int = 300
+    """Adam steps."""
+    lr: float = 1e-3
+    """Adam learning rate."""
+    views_per_scene: int = 60
+    """Training (frame, camera) views per scene, each giving one RGB and one depth image."""
+    seed: int = 0
+    """Seed of view sampling and of the fit."""
+
+
+@dataclass
+class DiffusionStageConfig:
+    """Stage 3: the UNet with v-prediction on shift, future and weather targets of the training scenes."""
+
+    steps: int = 600
+    """Optimiser steps."""
+    batch_size: int = 8
+    """Examples per step (per worker)."""
+    lr: float = 1e-3
+    """AdamW learning rate of the UNet (and the null token)."""
+    warmup_steps: int = 20
+    """Linear learning-rate warm-up."""
+    grad_clip: float = 1.0
+    """Gradient-norm clip (<= 0 turns it off)."""
+    cameras: list[str] = field(default_factory=lambda: ["CAM_FRONT"])
+    """Cameras whose views become targets."""
+    shifts_m: list[float] = field(default_factory=lambda: [1.0, -1.0, 2.0, -2.0, 4.0, -4.0])
+    """Lateral shift targets, metres (+ = left). Ground truth exists only where the data can re-render (synthetic)."""
+    horizons_s: list[float] = field(default_factory=lambda: [1.0, 2.0])
+    """Future targets, seconds ahead on the recorded ego trajectory."""
+    weathers: list[str] = field(default_factory=lambda: ["rain", "fog", "night"])
+    """Weather-editing targets (pairs from the dataset's weather variants)."""
+    eval_shifts_m: list[float] = field(default_factory=lambda: [1.0, -1.0])
+    """Held-out targets generated and scored at the end (the val split's scenes)."""
+    eval_horizons_s: list[float] = field(default_factory=lambda: [1.0])
+    """Held-out future targets scored at the end."""
+    eval_frames: int = 10
+    """Frames per held-out scene that are scored (the first N)."""
+    fd_extractor: str = "daisy"
+    """Features of the held-out Fréchet distance: ``daisy`` (logged as ``fd_daisy``, approximate) or ``inception``
+    (FID, needs ``fd_weights``)."""
+    fd_weights: str | None = None
+    """Local TorchScript file of the standard Inception weights (``fd_extractor: inception``); never downloaded."""
+    log_every: int = 10
+    """Log the training loss every N steps."""
+    seed: int = 0
+    """Seed of batches, noise and initialisation."""
