@@ -13,7 +13,6 @@ Output of ``diffusion``: the saved model (``unet/``, ``vae/``, ``rgbd.json``, ``
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -23,7 +22,7 @@ import ray.train
 import torch
 
 from gdwm.stage import StageContext, stage
-from gdwm.training import TrainSession
+from gdwm.training import TrainSession, warmup_cosine_lr
 from model_zoo import registry
 from model_zoo.diffusion.rgbd_dual import DiffusionConfig, RGBDDual
 from model_zoo.diffusion.vpred import depth_to_rgb
@@ -137,13 +136,6 @@ def _pad(tokens: list[torch.Tensor | None]) -> tuple[torch.Tensor | None, torch.
     return out, mask
 
 
-def lr_at(step: int, cfg: DiffusionStageConfig) -> float:
-    if cfg.warmup_steps and step < cfg.warmup_steps:
-        return cfg.lr * (step + 1) / cfg.warmup_steps
-    progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
-    return cfg.lr * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(1.0, progress))))
-
-
 def train_loop(s: TrainSession) -> None:
     c = s.config
     cfg = DiffusionStageConfig(**c["train"])
@@ -163,7 +155,7 @@ def train_loop(s: TrainSession) -> None:
     n = len(data["target_rgb"])
     for step in range(start, cfg.steps):
         for group in opt.param_groups:
-            group["lr"] = lr_at(step, cfg)
+            group["lr"] = warmup_cosine_lr(step, cfg.lr, cfg.warmup_steps, cfg.steps)
         gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
         idx = torch.randint(n, (cfg.batch_size * s.world_size,), generator=gen)
         idx = idx[s.rank * cfg.batch_size : (s.rank + 1) * cfg.batch_size]

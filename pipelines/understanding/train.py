@@ -7,7 +7,6 @@ task-aware batches that depend only on (seed, step), so a resumed run continues 
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -15,7 +14,7 @@ import ray.train
 import ray.train.torch
 import torch
 
-from gdwm.training import TrainSession
+from gdwm.training import TrainSession, warmup_cosine_lr
 from pipelines.data.reader import GSQADataset
 from pipelines.understanding.config import LoraStageConfig, TrainConfig
 from pipelines.understanding.data import FrameStore, QASample, TaskSampler, load_samples
@@ -23,14 +22,6 @@ from pipelines.understanding.infer import predict
 from pipelines.understanding.model import WorldModel, autocast, load_world_model
 
 log = logging.getLogger(__name__)
-
-
-def lr_at(step: int, cfg: TrainConfig) -> float:
-    """Linear warm-up, then cosine decay to 10 % of ``lr``."""
-    if cfg.warmup_steps and step < cfg.warmup_steps:
-        return cfg.lr * (step + 1) / cfg.warmup_steps
-    progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
-    return cfg.lr * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(1.0, progress))))
 
 
 def open_model(c: dict) -> WorldModel:
@@ -74,7 +65,7 @@ def train_loop(s: TrainSession) -> None:
     rank_share = cfg.batch_size
     for step in range(start, cfg.steps):
         for group in opt.param_groups:
-            group["lr"] = lr_at(step, cfg)
+            group["lr"] = warmup_cosine_lr(step, cfg.lr, cfg.warmup_steps, cfg.steps)
         idx = sampler.batch(step, rank_share * s.world_size)[s.rank * rank_share : (s.rank + 1) * rank_share]
         batch = [samples[i] for i in idx]
         model.train()

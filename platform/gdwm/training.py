@@ -17,6 +17,7 @@ and ``restore`` reads that first, so a restarted worker or a re-run resumes from
 
 from __future__ import annotations
 
+import math
 import shutil
 import tempfile
 from collections.abc import Callable, Mapping
@@ -83,6 +84,14 @@ class TrainSession:
                 _persist_local(Path(d), Path(self.local_ckpt_dir), step)
             ckpt = Checkpoint.from_directory(d) if self.rank == 0 else None
             ray.train.report({**metrics, "step": step}, checkpoint=ckpt)
+
+
+def warmup_cosine_lr(step: int, base_lr: float, warmup_steps: int, total_steps: int, floor: float = 0.1) -> float:
+    """Linear warm-up over ``warmup_steps``, then cosine decay to ``floor * base_lr`` at ``total_steps``."""
+    if warmup_steps and step < warmup_steps:
+        return base_lr * (step + 1) / warmup_steps
+    progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
+    return base_lr * (floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
 def latest_local_checkpoint(root: str | None) -> Path | None:
