@@ -330,13 +330,14 @@ class WorldLLM:
         pixel_values: torch.Tensor | None = None,
         image_grid_thw: torch.Tensor | None = None,
         with_labels: bool = False,
+        output_hidden_states: bool = False,
     ) -> Any:
         """The model's ``CausalLMOutputWithPast`` on a collated batch (``.loss`` with ``with_labels``)."""
         inputs = self._inputs(batch, z_BFH, pixel_values, image_grid_thw)
         if with_labels:
             inputs["labels"] = batch["labels"].to(self.device)
         with self.inject(z_BFH):
-            return self.model(**inputs)
+            return self.model(**inputs, output_hidden_states=output_hidden_states)
 
     @torch.no_grad()
     def hidden_states(
@@ -347,9 +348,7 @@ class WorldLLM:
         image_grid_thw: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """``[B, L, H]`` last-layer hidden states of the prompt (the generation branch's C_L = Phi_LLM(Z_G, q))."""
-        inputs = self._inputs(batch, z_BFH, pixel_values, image_grid_thw)
-        with self.inject(z_BFH):
-            return self.model(**inputs, output_hidden_states=True).hidden_states[-1]
+        return self.forward(batch, z_BFH, pixel_values, image_grid_thw, output_hidden_states=True).hidden_states[-1]
 
     def loss(
         self,
