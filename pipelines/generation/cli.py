@@ -106,14 +106,9 @@ def _runtime(cfg) -> Runtime:
 
 def _condition(rt: Runtime, prompts: list) -> tuple[Any, Any]:
     """C_L for each prompt (``QASample``), padded; (None, None) when the high-level condition is off."""
-    from pipelines.stages.diffusion import _pad
-    from pipelines.understanding.data import FrameStore
+    from pipelines.stages.diffusion import conditions_of, pad_tokens
 
-    if rt.world is None:
-        return None, None
-    store = FrameStore(rt.ds, rt.distill_dirs, rt.world.comp.world.weather, rt.world.comp.world.trajectory_frames)
-    h, m = rt.world.condition(prompts, store)
-    return _pad([h[b, m[b]].cpu() for b in range(len(prompts))])
+    return pad_tokens(conditions_of(rt.world, rt.ds, rt.distill_dirs, prompts, len(prompts) or 1))
 
 
 def _sample(rt: Runtime, examples: list, prompts: list, seed: int):
@@ -187,6 +182,7 @@ def _log(cfg, kind: str, name: str, out_dir: Path, params: dict, metrics: dict) 
 def generate(cfg, _argv: list[str]) -> int:
     """generate shifted / future views of a frame (args.scene, args.frame, args.shifts_m, args.horizons_s)"""
     from gdwm.term import console
+    from pipelines.generation.conditions import horizon_frames
     from pipelines.generation.samples import GenTarget, build_example, frame_gaussians
 
     a = GenerateArgs(**cfg.args)
@@ -198,8 +194,9 @@ def generate(cfg, _argv: list[str]) -> int:
         raise CommandError(f"args.scene: no reconstruction of '{scene}' (scenes: {sorted(rt.rec_dirs)})")
     rate = float(rt.ds.scene(scene).info["frame_rate_hz"])
     targets = [GenTarget(scene, a.frame, a.camera, "shift", lateral_m=float(m)) for m in a.shifts_m]
-    targets += [GenTarget(scene, a.frame, a.camera, "future", horizon_frames=round(s * rate), horizon_s=float(s))
-                for s in a.horizons_s]  # fmt: skip
+    for s in a.horizons_s:
+        h = horizon_frames(s, rate)
+        targets.append(GenTarget(scene, a.frame, a.camera, "future", horizon_frames=h, horizon_s=float(s)))
     if not targets:
         from gdwm.cli import CommandError
 

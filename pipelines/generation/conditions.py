@@ -19,10 +19,9 @@ import torch
 
 from model_zoo.render import Camera, RenderOutput, rasterize
 
-SPATIAL_SHIFTS: tuple[float, ...] = (1.0, -1.0, 2.0, -2.0, 4.0, -4.0)
-"""Default lateral shifts of the spatial targets, metres (+ = left)."""
-TEMPORAL_HORIZONS_S: tuple[float, ...] = (1.0, 2.0)
-"""Default horizons of the temporal targets, seconds."""
+
+class NoGaussiansInView(ValueError):
+    """The target camera sees none of the frame's Gaussians: there is nothing to condition on."""
 
 
 @dataclass
@@ -98,44 +97,6 @@ def target_name(lateral_m: float = 0.0, longitudinal_m: float = 0.0, future_s: f
     return "_".join(parts)
 
 
-@dataclass(frozen=True)
-class Target:
-    """One generation target: a spatial shift of the current camera, or the camera ``future_s`` seconds ahead."""
-
-    lateral_m: float = 0.0
-    """Ego +y (left) shift, metres."""
-    longitudinal_m: float = 0.0
-    """Ego +x (forward) shift, metres."""
-    future_s: float | None = None
-    """Temporal target: seconds ahead on the recorded ego trajectory (None: spatial)."""
-
-    @property
-    def name(self) -> str:
-        return target_name(self.lateral_m, self.longitudinal_m, self.future_s)
-
-    def sensor2ego(
-        self,
-        sensor2ego_44: np.ndarray,
-        ego2world_F44: np.ndarray,
-        frame: int,
-        frame_rate_hz: float,
-        *,
-        scene: str = "scene",
-    ) -> np.ndarray:
-        """The target camera -> current ego ``[4, 4]``."""
-        if self.future_s is None:
-            return shifted_camera_pose(sensor2ego_44, self.lateral_m, self.longitudinal_m)
-        h = horizon_frames(self.future_s, frame_rate_hz)
-        return future_camera_pose(ego2world_F44, frame, h, sensor2ego_44, scene=scene)
-
-
-def default_targets(
-    shifts: tuple[float, ...] = SPATIAL_SHIFTS, horizons_s: tuple[float, ...] = TEMPORAL_HORIZONS_S
-) -> list[Target]:
-    """The spatial targets (lateral shifts) then the temporal ones."""
-    return [Target(lateral_m=s) for s in shifts] + [Target(future_s=t) for t in horizons_s]
-
-
 # ----------------------------------------------------------------------------- projection
 
 
@@ -190,7 +151,7 @@ def low_level_conditions(
 
     ``mask`` = accumulated alpha >= ``alpha_threshold``; inside it ``rgb`` is the composited colour divided by alpha
     (so coverage does not darken the cue, as depth is normalised), outside it both maps are 0. ``target`` names the
-    pose in errors (default: the camera's ego position). A target with no Gaussians in view -> ``ValueError``.
+    pose in errors (default: the camera's ego position). A target with no Gaussians in view -> ``NoGaussiansInView``.
     """
     if not 0.0 < alpha_threshold <= 1.0:
         raise ValueError(f"{scene}/frame_{frame:03d}: alpha_threshold must be in (0, 1], got {alpha_threshold}")
@@ -199,7 +160,7 @@ def low_level_conditions(
         if target is None:
             x, y, z = np.asarray(sensor2ego_44, dtype=np.float64)[:3, 3]
             target = f"camera at ego ({x:.2f}, {y:.2f}, {z:.2f}) m"
-        raise ValueError(f"{scene}/frame_{frame:03d}: no Gaussians in view of the target camera ({target})")
+        raise NoGaussiansInView(f"{scene}/frame_{frame:03d}: no Gaussians in view of the target camera ({target})")
     alpha = out.alpha.numpy()
     mask = alpha >= alpha_threshold
     rgb = np.where(mask[..., None], out.rgb.numpy() / np.maximum(alpha, 1e-6)[..., None], 0.0)

@@ -22,6 +22,7 @@ from pipelines.data.reader import GSQADataset, gaussians_from_table, read_arrow
 from pipelines.data.synth.novel_view import render_view
 from pipelines.generation.conditions import (
     future_camera_pose,
+    horizon_frames,
     low_level_conditions,
     shifted_camera_pose,
     target_name,
@@ -87,7 +88,7 @@ def enumerate_targets(
             for cam in cameras:
                 out += [GenTarget(sid, f, cam, "shift", lateral_m=float(m)) for m in shifts_m]
                 for s in horizons_s:
-                    h = round(s * rate)
+                    h = horizon_frames(s, rate)
                     if f + h < scene.num_frames:
                         out.append(GenTarget(sid, f, cam, "future", horizon_frames=h, horizon_s=float(s)))
                 out += [GenTarget(sid, f, cam, "weather", weather=w) for w in weathers if w in scene.weathers]

@@ -27,6 +27,7 @@ from model_zoo import registry
 from model_zoo.diffusion.rgbd_dual import DiffusionConfig, RGBDDual
 from model_zoo.diffusion.vpred import depth_to_rgb
 from pipelines.data.reader import GSQADataset
+from pipelines.generation.conditions import NoGaussiansInView
 from pipelines.generation.config import DiffusionStageConfig, VaeStageConfig
 from pipelines.generation.frechet import build_extractor
 from pipelines.generation.metrics import PROTOCOL, score_views
@@ -38,7 +39,7 @@ from pipelines.generation.samples import (
     frame_gaussians,
     stack,
 )
-from pipelines.understanding.data import FrameStore
+from pipelines.understanding.data import FrameStore, QASample
 from pipelines.understanding.model import load_world_model
 
 MODEL = "model.diffusion"
@@ -104,27 +105,25 @@ def _examples(ds, targets: list[GenTarget], rec_dirs: dict[str, Path], hw) -> tu
             continue
         try:
             out.append(build_example(ds, t, cache[key], hw))
-        except ValueError:  # no Gaussians in view of this target: nothing to condition on
+        except NoGaussiansInView:  # nothing to condition on
             skipped += 1
     return out, skipped
 
 
-def _conditions(world_dir: Path | None, ds, distill_dirs, targets: list[GenTarget], batch: int) -> list:
-    """C_L of every target (None when the high-level condition is off)."""
-    if world_dir is None:
-        return [None] * len(targets)
-    world = load_world_model(world_dir)
-    world.eval()
+def conditions_of(world, ds, distill_dirs, prompts: list[QASample], batch: int) -> list:
+    """C_L of every prompt from the (frozen) world model, unpadded; Nones when the high-level condition is off."""
+    if world is None:
+        return [None] * len(prompts)
     store = FrameStore(ds, distill_dirs, world.comp.world.weather, world.comp.world.trajectory_frames)
     out = []
-    for i in range(0, len(targets), batch):
-        chunk = targets[i : i + batch]
-        h, m = world.condition([t.qa() for t in chunk], store)
+    for i in range(0, len(prompts), batch):
+        chunk = prompts[i : i + batch]
+        h, m = world.condition(chunk, store)
         out += [h[b, m[b]].cpu() for b in range(len(chunk))]
     return out
 
 
-def _pad(tokens: list[torch.Tensor | None]) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+def pad_tokens(tokens: list[torch.Tensor | None]) -> tuple[torch.Tensor | None, torch.Tensor | None]:
     if tokens[0] is None:
         return None, None
     n = max(len(t) for t in tokens)
@@ -213,7 +212,7 @@ def diffusion(ctx: StageContext) -> dict:
     ds = GSQADataset(ctx.data_root)
     rec_dirs = dict(ctx.upstream["reconstruct"].scenes)
     splits = split_scenes(ds, set(rec_dirs))
-    world_dir = ctx.upstream["lora"].path if mcfg.high_level else None
+    world = load_world_model(ctx.upstream["lora"].path).eval() if mcfg.high_level else None  # C_L, loaded once
     distill_dirs = dict(ctx.upstream["distill"].scenes)
     hw = mcfg.image_size
 
@@ -222,9 +221,9 @@ def diffusion(ctx: StageContext) -> dict:
     if not examples:
         raise ValueError(f"diffusion: no training examples ({skipped} targets skipped) in scenes {splits['train']}")
     ctx.tracker.log_metrics({"train_examples": float(len(examples)), "skipped_targets": float(skipped)})
-    c_L = _conditions(world_dir, ds, distill_dirs, [e.target for e in examples], cfg.batch_size)
+    c_L = conditions_of(world, ds, distill_dirs, [e.target.qa() for e in examples], cfg.batch_size)
     data = stack(examples)
-    tokens, mask = _pad(c_L)
+    tokens, mask = pad_tokens(c_L)
     if tokens is not None:
         data |= {"c_L": tokens, "c_L_mask": mask}
     data_path = ctx.checkpoint_dir / "examples.pt"
@@ -252,12 +251,12 @@ def diffusion(ctx: StageContext) -> dict:
     held, _ = _examples(ds, eval_targets, rec_dirs, hw)
     metrics: dict = {"train_examples": len(examples), "heldout_examples": len(held)}
     if held:
-        held_c = _conditions(world_dir, ds, distill_dirs, [e.target for e in held], cfg.batch_size)
+        held_c = conditions_of(world, ds, distill_dirs, [e.target.qa() for e in held], cfg.batch_size)
         scored = []
         for i in range(0, len(held), cfg.batch_size):
             chunk = held[i : i + cfg.batch_size]
             b = stack(chunk)
-            tok, m = _pad(held_c[i : i + cfg.batch_size])
+            tok, m = pad_tokens(held_c[i : i + cfg.batch_size])
             gen = torch.Generator().manual_seed(cfg.seed + i)
             rgb, depth = model.sample(b["ref_rgb"], b["ref_depth"], b["cond_rgb"], b["cond_depth"], b["cond_mask"],
                                       tok, m, generator=gen)  # fmt: skip

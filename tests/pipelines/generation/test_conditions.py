@@ -10,9 +10,7 @@ import pytest
 from pipelines.data.reader import GSQADataset
 from pipelines.data.synth.novel_view import render_view
 from pipelines.generation.conditions import (
-    SPATIAL_SHIFTS,
-    Target,
-    default_targets,
+    NoGaussiansInView,
     future_camera_pose,
     horizon_frames,
     low_level_conditions,
@@ -20,6 +18,7 @@ from pipelines.generation.conditions import (
     shifted_camera_pose,
     target_name,
 )
+from pipelines.generation.samples import GenTarget, enumerate_targets, target_pose
 from pipelines.recon.init import load_views
 
 K_33 = np.array([[50.0, 0.0, 32.0], [0.0, 50.0, 18.0], [0.0, 0.0, 1.0]])
@@ -148,7 +147,7 @@ def test_no_gaussians_in_view_names_scene_frame_and_pose():
     with pytest.raises(ValueError, match=re.escape(msg)):
         low_level_conditions(behind, K_33, shifted_camera_pose(s2e, 2.0), W, H, scene="scene-0003", frame=7)
     empty = {k: v[:0] for k, v in behind.items()}
-    with pytest.raises(ValueError, match=r"scene-0003/frame_007: no Gaussians in view"):
+    with pytest.raises(NoGaussiansInView, match=r"scene-0003/frame_007: no Gaussians in view"):
         low_level_conditions(empty, K_33, s2e, W, H, scene="scene-0003", frame=7)
 
 
@@ -171,8 +170,10 @@ def test_future_pose_is_the_recorded_future_view_in_the_current_ego_frame(scene0
 
 def test_horizons_and_target_names(scene0):
     assert horizon_frames(1.0, 2.0) == 2 and horizon_frames(2.0, 2.0) == 4 and horizon_frames(1.0, 12.0) == 12
-    assert SPATIAL_SHIFTS == (1.0, -1.0, 2.0, -2.0, 4.0, -4.0)
-    names = [t.name for t in default_targets()]
+    defaults = enumerate_targets(
+        scene0.ds, [scene0.id], ["CAM_FRONT"], [1.0, -1.0, 2.0, -2.0, 4.0, -4.0], [1.0, 2.0], []
+    )
+    names = list(dict.fromkeys(t.name for t in defaults))
     assert names == [
         "shift_1m",
         "shift_-1m",
@@ -188,10 +189,10 @@ def test_horizons_and_target_names(scene0):
     with pytest.raises(ValueError, match="a spatial shift or a future horizon"):
         target_name(1.0, future_s=1.0)
     s2e, rate = scene0.cameras["CAM_FRONT"].sensor2ego_44, float(scene0.info["frame_rate_hz"])
-    np.testing.assert_array_equal(
-        Target(future_s=1.0).sensor2ego(s2e, scene0.ego_poses, 3, rate), future_camera_pose(scene0.ego_poses, 3, 2, s2e)
-    )
-    np.testing.assert_array_equal(Target(lateral_m=-2.0).sensor2ego(s2e, scene0.ego_poses, 3, rate)[1, 3], -2.0)
+    future = GenTarget(scene0.id, 3, "CAM_FRONT", "future", horizon_frames=horizon_frames(1.0, rate), horizon_s=1.0)
+    np.testing.assert_array_equal(target_pose(scene0.ds, future), future_camera_pose(scene0.ego_poses, 3, 2, s2e))
+    shift = GenTarget(scene0.id, 3, "CAM_FRONT", "shift", lateral_m=-2.0)
+    np.testing.assert_array_equal(target_pose(scene0.ds, shift)[1, 3], -2.0)
 
 
 def _median_rel(c, depth_gt) -> float:
