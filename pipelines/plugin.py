@@ -15,6 +15,7 @@ def register(cs: ConfigStore) -> None:
     from pipelines.data.nuscenes import NuScenesConfig
     from pipelines.data.synth.config import SynthConfig
     from pipelines.distill.config import DistillConfig
+    from pipelines.evaluate.config import EvaluateGenConfig, EvaluateQAConfig
     from pipelines.generation.cli import EditArgs, GenerateArgs
     from pipelines.generation.config import DiffusionStageConfig, VaeStageConfig
     from pipelines.recon.config import ReconstructConfig
@@ -36,5 +37,7 @@ def register(cs: ConfigStore) -> None:
     cs.store(group="schema/stage", name="diffusion_vae", node=VaeStageConfig)
     cs.store(group="schema/stage", name="diffusion", node=DiffusionStageConfig)
     cs.store(group="schema/model", name="diffusion", node=DiffusionConfig)
+    cs.store(group="schema/stage", name="evaluate_qa", node=EvaluateQAConfig)
+    cs.store(group="schema/stage", name="evaluate_gen", node=EvaluateGenConfig)
     cs.store(group="schema/args", name="generate", node=GenerateArgs)
     cs.store(group="schema/args", name="edit", node=EditArgs)

@@ -42,17 +42,6 @@ class DiffusionStageConfig:
     """Future targets, seconds ahead on the recorded ego trajectory."""
     weathers: list[str] = field(default_factory=lambda: ["rain", "fog", "night"])
     """Weather-editing targets (pairs from the dataset's weather variants)."""
-    eval_shifts_m: list[float] = field(default_factory=lambda: [1.0, -1.0])
-    """Held-out targets generated and scored at the end (the val split's scenes)."""
-    eval_horizons_s: list[float] = field(default_factory=lambda: [1.0])
-    """Held-out future targets scored at the end."""
-    eval_frames: int = 10
-    """Frames per held-out scene that are scored (the first N)."""
-    fd_extractor: str = "daisy"
-    """Features of the held-out Fréchet distance: ``daisy`` (logged as ``fd_daisy``, approximate) or ``inception``
-    (FID, needs ``fd_weights``)."""
-    fd_weights: str | None = None
-    """Local TorchScript file of the standard Inception weights (``fd_extractor: inception``); never downloaded."""
     log_every: int = 10
     """Log the training loss every N steps."""
     seed: int = 0

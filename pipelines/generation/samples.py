@@ -46,12 +46,17 @@ class GenTarget:
     horizon_s: float = 0.0
     weather: str = "clear"
     """Weather targets: the variant to generate."""
+    ego_pose: tuple[float, ...] | None = None
+    """Future targets on a predicted trajectory: the predicted ego pose at the horizon in frame ``frame``'s ego
+    frame (4x4, row-major); None = the recorded pose."""
 
     @property
     def name(self) -> str:
         """Metric name of the target family: ``shift_1m``, ``shift_-1m``, ``future_2s``, ``weather_rain``."""
         if self.kind == "shift":
             return target_name(lateral_m=self.lateral_m)
+        if self.kind == "future" and self.ego_pose is not None:
+            return target_name(future_s=self.horizon_s).replace("future_", "future_pred_")
         if self.kind == "future":
             return target_name(future_s=self.horizon_s)
         return f"weather_{self.weather}"
@@ -130,6 +135,8 @@ def target_pose(ds: GSQADataset, t: GenTarget) -> np.ndarray:
     base = scene.cameras[t.camera].sensor2ego_44
     if t.kind == "shift":
         return shifted_camera_pose(base, lateral_m=t.lateral_m)
+    if t.kind == "future" and t.ego_pose is not None:
+        return np.asarray(t.ego_pose, dtype=np.float64).reshape(4, 4) @ base
     if t.kind == "future":
         return future_camera_pose(scene.ego_poses, t.frame, t.horizon_frames, base, scene=t.scene)
     return base

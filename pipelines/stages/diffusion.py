@@ -4,10 +4,9 @@
 weights from ``model.diffusion.path``) and fits the tiny VAE to the training views, a cached upstream step of its
 own. ``diffusion`` trains the UNet with v-prediction (Eq. L_gen) on shift, future and weather targets: reference =
 the clear view of frame f, low-level = frame f's reconstructed Gaussians projected into the target camera, C_L = the
-LoRA'd LLM's hidden states for (Z_G, instruction). It ends by generating the held-out targets and scoring them.
+LoRA'd LLM's hidden states for (Z_G, instruction). The held-out targets are the ``evaluate_gen`` stage's.
 
-Output of ``diffusion``: the saved model (``unet/``, ``vae/``, ``rgbd.json``, ``null_token.pt``), ``metrics.json``,
-``samples/<target>/<scene>_<frame>.png`` (reference | condition | generated | ground truth).
+Output of ``diffusion``: the saved model (``unet/``, ``vae/``, ``rgbd.json``, ``null_token.pt``), ``metrics.json``.
 """
 
 from __future__ import annotations
@@ -29,8 +28,6 @@ from model_zoo.diffusion.vpred import depth_to_rgb
 from pipelines.data.reader import GSQADataset
 from pipelines.generation.conditions import NoGaussiansInView
 from pipelines.generation.config import DiffusionStageConfig, VaeStageConfig
-from pipelines.generation.frechet import build_extractor
-from pipelines.generation.metrics import PROTOCOL, score_views
 from pipelines.generation.samples import (
     GenExample,
     GenTarget,
@@ -201,7 +198,7 @@ def _save_grid(path: Path, ex: GenExample, rgb: torch.Tensor) -> None:
 
 @stage(
     "diffusion",
-    "1",
+    "2",
     config=[MODEL, "stage.diffusion"],
     upstream=["diffusion_vae", "reconstruct", "lora", "distill"],
     resources="train",
@@ -242,33 +239,7 @@ def diffusion(ctx: StageContext) -> dict:
     model.load_state_dict(result.state["model"], strict=False)
     model.eval()
 
-    # Held-out targets of the val scenes: generate, score against ground truth, keep the image rows.
-    eval_targets = [
-        t
-        for t in enumerate_targets(ds, splits["val"], cfg.cameras, cfg.eval_shifts_m, cfg.eval_horizons_s, [])
-        if t.frame < cfg.eval_frames
-    ]
-    held, _ = _examples(ds, eval_targets, rec_dirs, hw)
-    metrics: dict = {"train_examples": len(examples), "heldout_examples": len(held)}
-    if held:
-        held_c = conditions_of(world, ds, distill_dirs, [e.target.qa() for e in held], cfg.batch_size)
-        scored = []
-        for i in range(0, len(held), cfg.batch_size):
-            chunk = held[i : i + cfg.batch_size]
-            b = stack(chunk)
-            tok, m = pad_tokens(held_c[i : i + cfg.batch_size])
-            gen = torch.Generator().manual_seed(cfg.seed + i)
-            rgb, depth = model.sample(b["ref_rgb"], b["ref_depth"], b["cond_rgb"], b["cond_depth"], b["cond_mask"],
-                                      tok, m, generator=gen)  # fmt: skip
-            for j, ex in enumerate(chunk):
-                scored.append((ex, rgb[j].cpu(), depth[j].cpu()))
-                name = f"samples/{ex.target.name}/{ex.target.scene}_{ex.target.frame:03d}_{ex.target.camera}.png"
-                _save_grid(ctx.out_dir / name, ex, rgb[j])
-        extractor = build_extractor(cfg.fd_extractor, cfg.fd_weights)
-        metrics |= score_views(scored, mcfg.max_depth, extractor)
-        metrics["fd_protocol"] = f"{extractor.name}: {extractor.protocol} ({extractor.source})"
-        ctx.tracker.log_metrics({k: v for k, v in metrics.items() if k.startswith("gen/")})
-        ctx.tracker.log_params({"fd_protocol": metrics["fd_protocol"], "metrics_protocol": PROTOCOL})
+    metrics: dict = {"train_examples": len(examples)}
     model.save(ctx.out_dir)
     (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True))
     return metrics

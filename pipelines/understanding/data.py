@@ -30,6 +30,8 @@ class QASample:
     instruction: str
     answer: str
     views: tuple[str, ...]
+    category: str = ""
+    """Finer than ``task`` (e.g. ``region_description``): the evaluate stage maps categories onto benchmark metrics."""
 
 
 def _turns(conversations: Sequence[Mapping], sample_id: str) -> tuple[str, str]:
@@ -57,7 +59,8 @@ def load_samples(
     for row in ds.qa(split=split).to_pylist():
         sid = row["sample_id"]
         human, gpt = _turns(row["conversations"], sid)
-        s = QASample(sid, row["scene_token"], int(row["frame_idx"]), row["task"], human, gpt, tuple(row["views"]))
+        views = tuple(row["views"])
+        s = QASample(sid, row["scene_token"], int(row["frame_idx"]), row["task"], human, gpt, views, row["category"])
         if need_gaussians:
             if s.scene not in scene_dirs:
                 skipped["scene_without_gaussians"] += 1

@@ -325,8 +325,10 @@ def task_options(sd: StageDef, env: RunEnv) -> dict:
     res = env.resources.get(sd.resources, {})
     if sd.per_scene:
         return {}
-    if sd.resources == "train" and int(res.get("num_workers", 1)) > 0:
-        return {"num_cpus": 0, "max_retries": env.max_retries}  # the Ray Train workers hold the resources
+    if sd.resources in ("train", "eval") and int(res.get("num_workers", 1)) > 0:
+        # The Ray Train workers (train) or the stage's own actors (eval) hold the resources: a coordinator that
+        # held a CPU too could starve its workers on a small cluster.
+        return {"num_cpus": 0, "max_retries": env.max_retries}
     return {
         "num_cpus": float(res.get("num_cpus", 1)),
         "num_gpus": float(res.get("num_gpus", 0)),

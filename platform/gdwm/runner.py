@@ -219,6 +219,9 @@ def run_pipeline(cfg: DictConfig, dry_run: bool = False, live: bool | None = Non
         with RunGuard(sink, parent):
             _execute_dag(pipe, order, cfg, env, summary, progress, live)
             call(sink, "log_metrics", parent, {"stages_run": sum(not r.cached for r in summary.results.values())})
+            evaluated = evaluation_metrics(pipe, summary.results)
+            if evaluated:
+                call(sink, "log_metrics", parent, evaluated)
             if summary.failed:
                 raise StageFailed(next(iter(summary.failed)), {None: next(iter(summary.failed.values()))})
     except StageFailed:
@@ -232,6 +235,15 @@ def run_pipeline(cfg: DictConfig, dry_run: bool = False, live: bool | None = Non
         if started:
             ray.shutdown()
     return summary
+
+
+def evaluation_metrics(pipe: Pipeline, results: dict[str, StageResult]) -> dict[str, float]:
+    """The numeric values evaluation stages returned (cached or not): the metrics of the trial's run."""
+    out: dict[str, float] = {}
+    for name, r in results.items():
+        if pipe.stages[name].evaluation:
+            out |= {k: float(v) for k, v in r.extra.items() if isinstance(v, int | float) and not isinstance(v, bool)}
+    return out
 
 
 def _parent_run(sink, cfg: DictConfig, pipe: Pipeline, run_key: str) -> str:

@@ -35,6 +35,8 @@ class StageDef:
     per_scene: bool = False
     resources: str = "cpu"
     setup: Callable[[Mapping], Any] | None = None
+    evaluation: bool = False
+    """Its returned numeric values are the trial's evaluation metrics (copied onto the trial's run)."""
 
     def __post_init__(self) -> None:
         if self.resources not in RESOURCE_CLASSES:
@@ -67,11 +69,12 @@ def stage(
     per_scene: bool = False,
     resources: str = "cpu",
     setup: Callable[[Mapping], Any] | None = None,
+    evaluation: bool = False,
 ) -> Callable[[Callable[[StageContext], Any]], StageDef]:
     """Declare a stage; the decorated name becomes its StageDef (point ``_target_`` at it)."""
 
     def wrap(fn: Callable[[StageContext], Any]) -> StageDef:
-        sd = StageDef(name, str(version), fn, tuple(config), tuple(upstream), per_scene, resources, setup)
+        sd = StageDef(name, str(version), fn, tuple(config), tuple(upstream), per_scene, resources, setup, evaluation)
         _REGISTRY[(fn.__module__, fn.__name__)] = sd
         return sd
 

@@ -1,5 +1,5 @@
-"""The real reconstruct -> distill -> tokenizer -> lora stages through `gdwm run` on a small synthetic_mini, tiny
-flavors."""
+"""The real stages through `gdwm run` on a small synthetic_mini, tiny flavors: reconstruct -> distill -> tokenizer
+-> lora -> evaluate_qa, and lora -> diffusion -> evaluate_gen."""
 
 from __future__ import annotations
 
@@ -8,22 +8,24 @@ import sys
 from collections import Counter
 
 import mlflow
+import pyarrow.parquet as pq
 
 from gdwm.cache import Cache
 
 
-def test_gdwm_run_reconstruct_distill_tokenizer_lora(tmp_path):
+def test_gdwm_run_reconstruct_distill_tokenizer_lora_evaluate_qa(tmp_path):
     args = [
         sys.executable,
         "-m",
         "gdwm",
         "run",
         f"workdir={tmp_path}",
-        "targets=[lora]",
+        "targets=[evaluate_qa]",
         "stage/reconstruct=tiny",
         "stage/distill=tiny",
         "stage/tokenizer=tiny",
         "stage/lora=tiny",
+        "stage/evaluate_qa=tiny",
         "data.num_scenes=2",
         "data.width=64",
         "data.height=36",
@@ -51,6 +53,17 @@ def test_gdwm_run_reconstruct_distill_tokenizer_lora(tmp_path):
     assert {"lora/adapter_model.safetensors", "val_predictions.parquet"} <= {f.path for f in lo.files}
     assert runs["lora"].data.metrics["val/loss_lm"] > 0
     assert runs["tokenizer"].data.metrics["skipped/train/instruction_without_gauss_placeholder"] == 1  # traj QA
+    # evaluate_qa: every answered sample in the Parquet artifact, the suites' metrics on the stage and the run
+    (ev,) = cache.entries("evaluate_qa")
+    assert {"predictions.parquet", "metrics.json", "protocol.json"} <= {f.path for f in ev.files}
+    preds = pq.read_table(tmp_path / "cache" / "evaluate_qa" / ev.key[:2] / ev.key / "predictions.parquet")
+    assert preds.num_rows == runs["evaluate_qa"].data.metrics["count/answered"] == 24  # stage.evaluate_qa: tiny
+    assert set(preds["task"].to_pylist()) <= {"rdp", "vg2d", "vg3d", "plan", "traj"}
+    assert "predictions.parquet" in {a.path for a in client.list_artifacts(runs["evaluate_qa"].info.run_id)}
+    ev_metrics = runs["evaluate_qa"].data.metrics
+    assert 0 <= ev_metrics["nuinteract/rdp_bleu"] <= 100 and "omnidrive/rouge_l" in ev_metrics
+    (parent,) = client.search_runs([exp.experiment_id], "tags.`gdwm.kind` = 'run'")
+    assert {k: v for k, v in parent.data.metrics.items() if "/" in k} == ev_metrics  # the trial's metrics
     # a second run is all cache hits
     again = subprocess.run(args, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "nothing to run" in again.stdout
@@ -64,6 +77,7 @@ TINY = [
     "stage/lora=tiny",
     "stage/diffusion_vae=tiny",
     "stage/diffusion=tiny",
+    "stage/evaluate_gen=tiny",
     "data.num_scenes=2",
     "data.width=64",
     "data.height=36",
@@ -79,14 +93,34 @@ def test_diffusion_stage_then_generate_and_edit(tmp_path):
 
     from pipelines.data.reader import GSQADataset
 
-    r = _gdwm("run", f"workdir={tmp_path}", "targets=[diffusion]", *TINY)
+    r = _gdwm("run", f"workdir={tmp_path}", "targets=[evaluate_gen]", *TINY)
     assert r.returncode == 0, r.stderr[-4000:]
-    (entry,) = Cache(tmp_path / "cache").entries("diffusion")
-    files = {f.path for f in entry.files}
-    assert {"unet/config.json", "vae/config.json", "rgbd.json", "null_token.pt", "metrics.json"} <= files
+    cache = Cache(tmp_path / "cache")
+    (entry,) = cache.entries("diffusion")
+    assert {"unet/config.json", "vae/config.json", "rgbd.json", "null_token.pt", "metrics.json"} <= {
+        f.path for f in entry.files
+    }
+    (ev,) = cache.entries("evaluate_gen")
+    files = {f.path for f in ev.files}
     assert any(p.startswith("samples/shift_1m/") and p.endswith(".png") for p in files)
-    metrics = json.loads((tmp_path / "cache" / "diffusion" / entry.key[:2] / entry.key / "metrics.json").read_text())
-    assert 0 < metrics["gen/shift_1m/psnr"] < 60 and metrics["gen/shift_1m/depth_absrel"] >= 0
+    metrics = json.loads((tmp_path / "cache" / "evaluate_gen" / ev.key[:2] / ev.key / "metrics.json").read_text())
+    assert 0 < metrics["gen/shift_1m/psnr"] < 60 and metrics["gen/shift_-1m/depth_absrel"] >= 0
+    assert metrics["count/heldout_views"] == 6  # 1 val scene x 2 frames x (2 shifts + 1 s ahead)
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path.resolve()}/mlflow.db")
+    exp = client.get_experiment_by_name("gdwm")
+    (parent,) = client.search_runs([exp.experiment_id], "tags.`gdwm.kind` = 'run'")
+    assert parent.data.metrics["gen/future_1s/psnr"] == metrics["gen/future_1s/psnr"]
+
+    # future targets on the trajectory the LLM predicts: only evaluate_gen runs again
+    predicted = ["stage.evaluate_gen.future_poses=predicted", "stage.evaluate_gen.frames=6"]
+    p = _gdwm("run", f"workdir={tmp_path}", "targets=[evaluate_gen]", *TINY, *predicted)
+    assert p.returncode == 0, p.stderr[-4000:]
+    ev2 = next(e for e in cache.entries("evaluate_gen") if e.key != ev.key)
+    m2 = json.loads((tmp_path / "cache" / "evaluate_gen" / ev2.key[:2] / ev2.key / "metrics.json").read_text())
+    pred_views = sum(f.path.startswith("samples/future_pred_1s/") for f in ev2.files)
+    # the val scene's one trajectory question (reference frame 4 < 6), one horizon: a view or a counted miss
+    assert pred_views + m2["count/trajectory_without_pose_at_horizon"] == 1
+    assert len(cache.entries("diffusion")) == 1
 
     g = _gdwm("generate", f"workdir={tmp_path}", *TINY, "args.scene=scene-0001", "args.frame=1",
               "args.shifts_m=[-1,1]", "args.horizons_s=[1]")  # fmt: skip
