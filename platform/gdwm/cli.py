@@ -6,6 +6,7 @@ Exit codes: 0 success, 1 a command failed (the message names what), 2 usage or c
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
@@ -131,6 +132,51 @@ def _status(cfg: DictConfig, _args: list[str]) -> int:
     return 0
 
 
+def _compare(cfg: DictConfig, _args: list[str]) -> int:
+    from gdwm.compare.command import compare
+
+    return compare(cfg)
+
+
+def ui_url(cfg: DictConfig) -> str:
+    """Where the MLflow UI answers (``ui.url``, else ``http://<ui.host>:<ui.port>``); report links point there."""
+    return cfg.ui.url or f"http://{cfg.ui.host}:{cfg.ui.port}"
+
+
+def _ui(cfg: DictConfig, _args: list[str]) -> int:
+    """``mlflow server`` on the configured store in the foreground; Ctrl-C (or SIGTERM) stops it, exit 0."""
+    import signal
+    import subprocess
+
+    cmd = [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", cfg.tracking.uri, "--workers", "1"]
+    cmd += ["--host", cfg.ui.host, "--port", str(cfg.ui.port)]
+    if cfg.tracking.artifact_location:  # experiments created in the UI keep their artifacts in the workdir too
+        cmd += ["--artifacts-destination", cfg.tracking.artifact_location]
+    # Its own process group: stopping it stops the web server workers it spawns too.
+    proc = subprocess.Popen(cmd, start_new_session=True)
+    console.print(f"MLflow UI for {cfg.tracking.uri}: {ui_url(cfg)}  (Ctrl-C stops it)")
+
+    def stop(_signum, _frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        rc = proc.wait()
+        if rc:
+            raise CommandError(f"mlflow server exited with status {rc} (command: {' '.join(cmd)})")
+        return 0
+    except KeyboardInterrupt:
+        with contextlib.suppress(ProcessLookupError):  # the group may be gone already
+            os.killpg(proc.pid, signal.SIGTERM)
+            try:
+                proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+        return 0
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def _config_show(cfg: DictConfig, _args: list[str]) -> int:
     console.print(OmegaConf.to_yaml(cfg), end="", markup=False)
     return 0
@@ -157,6 +203,18 @@ COMMANDS: dict[str, dict[str, Command]] = {
     },
     "status": {
         "": Command(_status, "list recent MLflow runs of the configured store"),
+    },
+    "compare": {
+        "": Command(
+            _compare,
+            'comparison table + HTML report of runs: args.sweep=NAME | args.runs=[ID,...] | args.filter="..." '
+            "(default: all), compare=LAYOUT (a conf/compare/ option, default nuinteract), args.baseline=ROW, "
+            "args.out=DIR, args.formats=[...]",
+            defaults=["args=compare", "compare=nuinteract"],
+        ),
+    },
+    "ui": {
+        "": Command(_ui, "serve the MLflow UI of the configured store (ui.host=127.0.0.1, ui.port=5000)"),
     },
 }
 

@@ -111,6 +111,18 @@ class RunSettings:
 
 
 @dataclass
+class UiConfig:
+    """``gdwm ui`` (the MLflow UI on the tracking store) and the run links of ``gdwm compare`` reports."""
+
+    host: str = "127.0.0.1"
+    """Interface the UI binds to; 0.0.0.0 exposes it to the network."""
+    port: int = 5000
+    """Port of the UI."""
+    url: str | None = None
+    """Base URL report links point at; null = http://<host>:<port>."""
+
+
+@dataclass
 class GdwmConfig:
     """Top level of every composed config."""
 
@@ -138,6 +150,10 @@ class GdwmConfig:
     """Stages to produce; only they and their ancestors run. Empty = the whole pipeline."""
     args: Any = field(default_factory=dict)
     """Arguments of a plugin command (``conf/args/<command>.yaml``), e.g. ``gdwm generate args.shift_m=1``."""
+    compare: Any = None
+    """Table layout of ``gdwm compare`` (group ``compare/``)."""
+    ui: UiConfig = field(default_factory=UiConfig)
+    """MLflow UI address."""
     cache: CacheConfig = field(default_factory=CacheConfig)
     """Stage cache."""
     run: RunSettings = field(default_factory=RunSettings)
@@ -151,6 +167,10 @@ def _register_platform(cs: ConfigStore) -> None:
     from gdwm.dag import PipelineConfig
 
     cs.store(group="schema/pipeline", name="pipeline", node=PipelineConfig)
+    from gdwm.compare.layout import CompareArgs, LayoutConfig
+
+    cs.store(group="schema/compare", name="layout", node=LayoutConfig)
+    cs.store(group="schema/args", name="compare", node=CompareArgs)
 
 
 @cache

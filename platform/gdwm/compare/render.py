@@ -1,0 +1,127 @@
+"""The table as a rich table, Markdown, LaTeX (booktabs) and CSV."""
+
+from __future__ import annotations
+
+import csv
+import io
+import re
+
+from rich.table import Table as RichTable
+from rich.text import Text
+
+from gdwm.compare.table import BEST, SECOND, Table
+
+_STYLE = {BEST: "bold", SECOND: "underline"}
+
+
+def _cell(table: Table, i: int, metric: str) -> tuple[str, str | None]:
+    return table.fmt(table.value(i, metric)), table.marks.get((i, metric))
+
+
+def to_rich(table: Table) -> RichTable:
+    """Group names head the first column of their group; bold = best, underlined = second best."""
+    t = RichTable(title=table.title, header_style="bold")
+    top = "\n" if any(c.group for c in table.columns) else ""  # a first header line for the group names
+    for name in ("row", *table.factors):
+        t.add_column(top + name)
+    seen: set[str] = set()
+    for c in table.columns:
+        group = c.group if c.group not in seen else ""
+        seen.add(c.group)
+        t.add_column((f"{group}\n" if top else "") + f"{c.header} {c.arrow}", justify="right")
+    if table.has_notes:
+        t.add_column("note", style="red")
+    for i, r in enumerate(table.rows):
+        cells = [Text(r.label), *(Text(table.factor(i, f)) for f in table.factors)]
+        for c in table.columns:
+            text, mark = _cell(table, i, c.metric)
+            cells.append(Text(text, style=_STYLE.get(mark, "")))
+        if table.has_notes:
+            cells.append(Text(r.note))
+        t.add_row(*cells, style="dim" if r.failed else None)
+    return t
+
+
+def _md_escape(s: str) -> str:
+    return s.replace("|", r"\|")
+
+
+def to_markdown(table: Table) -> str:
+    """GitHub Markdown: ``**best**``, ``<u>second</u>``; headers read ``<group> <header> ↑``."""
+    head = ["row", *table.factors, *(c.label for c in table.columns)]
+    head += ["note"] if table.has_notes else []
+    lines = [f"**{_md_escape(table.title)}**", "", "| " + " | ".join(map(_md_escape, head)) + " |"]
+    align = ["---"] * (1 + len(table.factors)) + ["---:"] * len(table.columns) + ["---"] * table.has_notes
+    lines.append("| " + " | ".join(align) + " |")
+    for i, r in enumerate(table.rows):
+        cells = [r.label, *(table.factor(i, f) for f in table.factors)]
+        for c in table.columns:
+            text, mark = _cell(table, i, c.metric)
+            cells.append(f"**{text}**" if mark == BEST else f"<u>{text}</u>" if mark == SECOND else text)
+        cells += [r.note] if table.has_notes else []
+        lines.append("| " + " | ".join(map(_md_escape, cells)) + " |")
+    return "\n".join(lines) + "\n"
+
+
+_TEX = {
+    **{c: "\\" + c for c in "&%$#_{}"},
+    "\\": r"\textbackslash{}",
+    "~": r"\textasciitilde{}",
+    "^": r"\textasciicircum{}",
+    "–": "--",
+    "↑": r"$\uparrow$",
+    "↓": r"$\downarrow$",
+}
+_TEX_RE = re.compile("|".join(map(re.escape, _TEX)))
+
+
+def tex_escape(s: str) -> str:
+    return _TEX_RE.sub(lambda m: _TEX[m.group()], s)
+
+
+def to_latex(table: Table) -> str:
+    """A booktabs ``tabular`` (needs booktabs); group headers as ``\\multicolumn`` over a ``\\cmidrule``."""
+    lead = 1 + len(table.factors)
+    spec = "l" * lead + "c" * len(table.columns) + ("l" if table.has_notes else "")
+    lines = [
+        f"% {tex_escape(table.title)} (needs \\usepackage{{booktabs}})",
+        f"\\begin{{tabular}}{{{spec}}}",
+        r"\toprule",
+    ]
+    if any(c.group for c in table.columns):
+        cells, rules, col = [""] * lead, [], lead + 1
+        for group, span in table.groups():
+            cells.append(f"\\multicolumn{{{span}}}{{c}}{{{tex_escape(group)}}}" if group else "")
+            cells += [""] * (0 if group else span - 1)
+            if group:
+                rules.append(f"\\cmidrule(lr){{{col}-{col + span - 1}}}")
+            col += span
+        cells += [""] if table.has_notes else []
+        lines += [" & ".join(cells) + r" \\", "".join(rules)]
+    head = ["Row", *table.factors, *(f"{c.header} {c.arrow}" for c in table.columns)]
+    head += ["Note"] if table.has_notes else []
+    lines += [" & ".join(map(tex_escape, head)) + r" \\", r"\midrule"]
+    for i, r in enumerate(table.rows):
+        cells = [tex_escape(r.label), *(tex_escape(table.factor(i, f)) for f in table.factors)]
+        for c in table.columns:
+            text, mark = _cell(table, i, c.metric)
+            text = tex_escape(text)
+            cells.append(
+                f"\\textbf{{{text}}}" if mark == BEST else f"\\underline{{{text}}}" if mark == SECOND else text
+            )
+        cells += [tex_escape(r.note)] if table.has_notes else []
+        lines.append(" & ".join(cells) + r" \\")
+    lines += [r"\bottomrule", r"\end{tabular}"]
+    return "\n".join(lines) + "\n"
+
+
+def to_csv(table: Table) -> str:
+    """One line per row: label, run id, status, factors, metrics by name (full precision; empty = missing), note."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["row", "run_id", "status", *table.factors, *(c.metric for c in table.columns), "note"])
+    for i, r in enumerate(table.rows):
+        values = [table.value(i, c.metric) for c in table.columns]
+        factors = [r.factors.get(f, "") for f in table.factors]
+        w.writerow([r.label, r.run_id, r.status, *factors, *("" if v is None else repr(v) for v in values), r.note])
+    return buf.getvalue()
