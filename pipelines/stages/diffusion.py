@@ -6,7 +6,8 @@ own. ``diffusion`` trains the UNet with v-prediction (Eq. L_gen) on shift, futur
 the clear view of frame f, low-level = frame f's reconstructed Gaussians projected into the target camera, C_L = the
 LoRA'd LLM's hidden states for (Z_G, instruction). The held-out targets are the ``evaluate_gen`` stage's.
 
-Output of ``diffusion``: the saved model (``unet/``, ``vae/``, ``rgbd.json``, ``null_token.pt``), ``metrics.json``.
+Output of ``diffusion``: the saved model (``unet/``, ``vae/``, ``rgbd.json``, ``null_token.pt``), ``metrics.json``,
+registered in the model zoo as ``gdwm-unet``; a fitted tiny VAE (``vae/`` of ``diffusion_vae``) as ``gdwm-vae``.
 """
 
 from __future__ import annotations
@@ -49,6 +50,12 @@ def diffusion_config(ctx: StageContext) -> DiffusionConfig:
     return DiffusionConfig(**c)
 
 
+def zoo_variant(cfg: DiffusionConfig) -> str:
+    """Model-zoo variant: the model, its flavor and the conditions on, e.g. ``rgbd_dual-tiny+low_level+high_level``."""
+    conditions = [n for n in ("low_level", "high_level") if getattr(cfg, n)]
+    return "+".join([f"{cfg.name}-tiny" if cfg.tiny else cfg.name, *conditions])
+
+
 def split_scenes(ds: GSQADataset, available: set[str]) -> dict[str, list[str]]:
     """Scenes per QA split (the dataset's train/val assignment), restricted to those with reconstructions."""
     qa = ds.qa()
@@ -87,6 +94,8 @@ def diffusion_vae(ctx: StageContext) -> dict:
         metrics = {"vae_fitted": 1.0, "vae_loss_first": losses[0], "vae_loss_final": losses[-1], "images": len(images)}
     model.save(ctx.out_dir)
     (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    if metrics["vae_fitted"]:
+        ctx.register("gdwm-vae", "vae", f"{cfg.name}-tiny")
     return metrics
 
 
@@ -242,4 +251,5 @@ def diffusion(ctx: StageContext) -> dict:
     metrics: dict = {"train_examples": len(examples)}
     model.save(ctx.out_dir)
     (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True))
+    ctx.register("gdwm-unet", ".", zoo_variant(mcfg))
     return metrics

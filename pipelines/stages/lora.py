@@ -1,6 +1,7 @@
 """lora (stage 2): peft LoRA on the LLM with the Gaussian adapter trainable; ``mode: zero_shot`` trains nothing
-and drops the Gaussian tokens (tab:qa-ablation-conference, first row). Output as the tokenizer stage's, plus
-``lora/`` (the peft adapter)."""
+and drops the Gaussian tokens (tab:qa-ablation-conference, first row); ``source: zoo:gdwm-lora@champion`` takes
+the model from the zoo. Output as the tokenizer stage's, plus ``lora/`` (the peft adapter); a trained one is
+registered as ``gdwm-lora``."""
 
 from __future__ import annotations
 
@@ -23,6 +24,11 @@ def lora(ctx: StageContext) -> dict:
         raise ValueError(f"stage.lora.mode: unknown mode '{cfg.mode}' (one of {list(MODES)})")
     init = ctx.upstream["tokenizer"].path
     scene_dirs = dict(ctx.upstream["distill"].scenes)
+    if cfg.source:  # from the model zoo: nothing trains, the version's world model is the output
+        if cfg.mode != "train":
+            raise ValueError(f"stage.lora: source={cfg.source} needs mode=train, got mode={cfg.mode}")
+        model = load_world_model(ctx.zoo_path(cfg.source))
+        return finish(ctx, model, cfg, scene_dirs, {"train_samples": 0, "trained": 0.0})
     if cfg.mode == "zero_shot":
         model = load_world_model(init)
         model.comp = replace(model.comp, world=replace(model.comp.world, gaussian_tokens=False))
@@ -31,4 +37,4 @@ def lora(ctx: StageContext) -> dict:
     train, skipped = load_samples(GSQADataset(ctx.data_root), "train", scene_dirs, need_gaussians=gaussian)
     log_skipped(ctx, "train", skipped)
     model = run_training(ctx, "lora", init, cfg, scene_dirs)
-    return finish(ctx, model, cfg, scene_dirs, {"train_samples": len(train), "trained": 1.0})
+    return finish(ctx, model, cfg, scene_dirs, {"train_samples": len(train), "trained": 1.0}, register="gdwm-lora")

@@ -3,7 +3,8 @@ train with L_LM + lambda_KL alpha(t) L_KL (Sec. Scene Understanding with Gaussia
 
 The tiny LLM flavor is built here (a random Qwen3-VL config and a byte-level BPE tokenizer trained on the training
 split's QA text) and saved with the model, so every later stage reads the same one. Output: a saved world model
-(``pipelines.understanding.model``), ``metrics.json`` and ``val_predictions.parquet``.
+(``pipelines.understanding.model``), ``metrics.json`` and ``val_predictions.parquet``, registered in the model zoo as
+``gdwm-tokenizer`` when it trained; ``source: zoo:gdwm-tokenizer@champion`` takes the model from the zoo instead.
 """
 
 from __future__ import annotations
@@ -23,6 +24,9 @@ def tokenizer(ctx: StageContext) -> dict:
     comp = components(ctx)
     cfg = TokenizerStageConfig(**ctx.cfg("stage.tokenizer"))
     scene_dirs = dict(ctx.upstream["distill"].scenes)
+    if cfg.source:  # from the model zoo: nothing trains
+        model = load_world_model(ctx.zoo_path(cfg.source))
+        return finish(ctx, model, cfg, scene_dirs, {"train_samples": 0, "trained": 0.0})
     ds = GSQADataset(ctx.data_root)
     train, skipped = load_samples(ds, "train", scene_dirs, need_gaussians=comp.world.gaussian_tokens)
     log_skipped(ctx, "train", skipped)
@@ -35,4 +39,5 @@ def tokenizer(ctx: StageContext) -> dict:
         build_world_model(comp, llm, scene_dirs).save(init, save_llm=True)
     trains = comp.world.gaussian_tokens and cfg.steps > 0  # image-only models have nothing to train in stage 1
     model = run_training(ctx, "tokenizer", init, cfg, scene_dirs) if trains else load_world_model(init)
-    return finish(ctx, model, cfg, scene_dirs, {"train_samples": len(train), "trained": float(trains)})
+    extra = {"train_samples": len(train), "trained": float(trains)}
+    return finish(ctx, model, cfg, scene_dirs, extra, register="gdwm-tokenizer" if trains else None)

@@ -51,6 +51,10 @@ class TrainConfig:
     """Greedy decoding budget of the held-out answers."""
     seed: int = 0
     """Seed of sampling and initialisation."""
+    source: str | None = None
+    """Take the stage's model from the model zoo instead of training it, e.g. ``zoo:gdwm-lora@champion`` or
+    ``zoo:gdwm-lora/3`` (``gdwm run`` pins an alias to its version before planning: the cache key names it);
+    the held-out monitor still runs, and nothing new is registered."""
 
 
 @dataclass

@@ -55,8 +55,24 @@ def run_training(
     return model
 
 
-def finish(ctx: StageContext, model: WorldModel, cfg: TrainConfig, scene_dirs: dict[str, Path], extra: dict) -> dict:
-    """Held-out monitor, then the saved model and its metrics in the stage output."""
+def variant(comp: Components) -> str:
+    """Zoo variant of a world model: its ablation switches, e.g. ``driving_aware+query_xattn+kl``."""
+    if not comp.world.gaussian_tokens:
+        return "image_only"
+    name = f"{comp.selector.name}+{comp.fine_adapter.name}+{comp.alignment.name}"
+    return name if comp.world.train_decoder else f"{name}+frozen_features"
+
+
+def finish(
+    ctx: StageContext,
+    model: WorldModel,
+    cfg: TrainConfig,
+    scene_dirs: dict[str, Path],
+    extra: dict,
+    register: str | None = None,
+) -> dict:
+    """Held-out monitor, then the saved model and its metrics in the stage output, registered in the model zoo as
+    component ``register`` (e.g. ``gdwm-lora``) when given."""
     ds = GSQADataset(ctx.data_root)
     val, skipped = load_samples(ds, "val", scene_dirs, need_gaussians=model.gaussian_tokens)
     log_skipped(ctx, "val", skipped)
@@ -69,4 +85,6 @@ def finish(ctx: StageContext, model: WorldModel, cfg: TrainConfig, scene_dirs: d
     n_val = 0 if ev["predictions"] is None else ev["predictions"].num_rows
     metrics = {**extra, **ev["metrics"], "val_samples": n_val}
     (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True))
+    if register:
+        ctx.register(register, ".", variant(model.comp))
     return metrics

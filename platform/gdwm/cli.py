@@ -132,6 +132,28 @@ def _status(cfg: DictConfig, _args: list[str]) -> int:
     return 0
 
 
+def _sweep(cfg: DictConfig, args: list[str]) -> int:
+    from gdwm.sweep import SweepError, load_sweep, report, run_sweep
+
+    t0 = time.perf_counter()
+    try:
+        summary = run_sweep(cfg, args, dry_run="--dry-run" in args)
+    except SweepError as e:
+        err_console.print(f"gdwm sweep: {e}", markup=False)
+        return 2
+    if "--dry-run" in args:
+        return 0
+    n = len(summary.trials)
+    console.print(
+        f"sweep: {n} trials, {summary.executions} stage executions run "
+        f"({summary.naive} as independent runs without a cache), {time.perf_counter() - t0:.0f} s"
+    )
+    report(cfg, load_sweep(cfg), args)
+    for label, msg in summary.failed.items():
+        err_console.print(f"gdwm sweep: trial '{label}' failed at {msg}", markup=False)
+    return 1 if summary.failed else 0
+
+
 def _compare(cfg: DictConfig, _args: list[str]) -> int:
     from gdwm.compare.command import compare
 
@@ -177,6 +199,15 @@ def _ui(cfg: DictConfig, _args: list[str]) -> int:
         signal.signal(signal.SIGTERM, previous)
 
 
+def _zoo(sub: str) -> Callable[[DictConfig, list[str]], int]:
+    def run(cfg: DictConfig, _args: list[str]) -> int:
+        from gdwm.zoo.command import SUBCOMMANDS
+
+        return SUBCOMMANDS[sub](cfg)
+
+    return run
+
+
 def _config_show(cfg: DictConfig, _args: list[str]) -> int:
     console.print(OmegaConf.to_yaml(cfg), end="", markup=False)
     return 0
@@ -204,6 +235,14 @@ COMMANDS: dict[str, dict[str, Command]] = {
     "status": {
         "": Command(_status, "list recent MLflow runs of the configured store"),
     },
+    "sweep": {
+        "": Command(
+            _sweep,
+            "run an ablation table: sweep=NAME (conf/sweep/), overrides for every trial; shared stages run once; "
+            "--dry-run prints trials x stages (cached / shared / to run)",
+            flags=("--dry-run",),
+        ),
+    },
     "compare": {
         "": Command(
             _compare,
@@ -215,6 +254,15 @@ COMMANDS: dict[str, dict[str, Command]] = {
     },
     "ui": {
         "": Command(_ui, "serve the MLflow UI of the configured store (ui.host=127.0.0.1, ui.port=5000)"),
+    },
+    "zoo": {
+        sub: Command(_zoo(sub), text, defaults=["args=zoo"])
+        for sub, text in (
+            ("list", "registered components: versions, variants, aliases, key metrics [args.name=NAME]"),
+            ("show", "one version's tags, source and files: args.name=NAME [args.version=N|@ALIAS]"),
+            ("promote", "set an alias: args.name=NAME args.version=N|@ALIAS [args.alias=champion]"),
+            ("load", "download a version's files: args.name=NAME [args.version=N|@ALIAS] [args.out=DIR]"),
+        )
     },
 }
 

@@ -152,6 +152,8 @@ class GdwmConfig:
     """Arguments of a plugin command (``conf/args/<command>.yaml``), e.g. ``gdwm generate args.shift_m=1``."""
     compare: Any = None
     """Table layout of ``gdwm compare`` (group ``compare/``)."""
+    sweep: Any = None
+    """Ablation table or grid of ``gdwm sweep`` (group ``sweep/``)."""
     ui: UiConfig = field(default_factory=UiConfig)
     """MLflow UI address."""
     cache: CacheConfig = field(default_factory=CacheConfig)
@@ -170,7 +172,13 @@ def _register_platform(cs: ConfigStore) -> None:
     from gdwm.compare.layout import CompareArgs, LayoutConfig
 
     cs.store(group="schema/compare", name="layout", node=LayoutConfig)
+    from gdwm.sweep import SweepConfig
+
+    cs.store(group="schema/sweep", name="sweep", node=SweepConfig)
     cs.store(group="schema/args", name="compare", node=CompareArgs)
+    from gdwm.zoo.refs import ZooArgs
+
+    cs.store(group="schema/args", name="zoo", node=ZooArgs)
 
 
 @cache

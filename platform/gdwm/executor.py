@@ -2,7 +2,8 @@
 
 Each stage task computes its cache key from its upstream results' keys, returns at once on a
 cache hit (no MLflow run), else runs the stage under one MLflow run (one per cache key: a
-killed attempt's run is reopened, never duplicated), publishes atomically and returns. A stage
+killed attempt's run is reopened, never duplicated), publishes atomically, registers the
+model-zoo components the stage declared (``ctx.register``) and returns. A stage
 task that fails raises ``StageFailed``; Ray then never starts its descendants.
 """
 
@@ -20,6 +21,7 @@ import ray
 from gdwm.cache import Cache, cache_key
 from gdwm.stage import StageContext, StageDef, UpstreamOutput
 from gdwm.tracking import Tracker, call
+from gdwm.zoo.registry import lineage_tags
 
 TAG_STAGE, TAG_KEY, TAG_VERSION, TAG_SCENES = "gdwm.stage", "gdwm.cache_key", "gdwm.version", "gdwm.scenes"
 
@@ -57,6 +59,8 @@ class RunEnv:
     seed: int = 0
     train_settings: Mapping[str, Any] = field(default_factory=dict)
     run_tags: Mapping[str, str] = field(default_factory=dict)
+    tracking_uri: str | None = None
+    """Where stages read zoo versions from (``ctx.zoo_path``); writes go through ``sink``."""
 
 
 @dataclass(frozen=True)
@@ -142,6 +146,7 @@ def _context(sd: StageDef, key: str, subset, env: RunEnv, results, out_dir: Path
         progress_sink=env.progress,
         seed=env.seed,
         train_settings=dict(env.train_settings),
+        tracking_uri=env.tracking_uri,
     )
 
 
@@ -168,6 +173,10 @@ def _execute(sd, key, subset, env, results, tracker, scene=None, state=None) -> 
             run_id=tracker.run_id,
             extra=extra,
         )
+        if m.run_id == tracker.run_id:  # else another attempt published this key first (and registered its own)
+            for r in ctx.registrations:
+                tags = {**lineage_tags(sd.name, key, m.upstream, m.extra, scene), **r.tags}
+                call(env.sink, "register_component", m.run_id, r.name, str(out / r.path), r.variant, tags)
         return str(cache.materialize(m)), dict(m.extra)
 
 

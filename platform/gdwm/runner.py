@@ -34,6 +34,7 @@ from gdwm.executor import (
 from gdwm.progress import ProgressActor, render
 from gdwm.term import console
 from gdwm.tracking import AliveExcept, RunGuard, call, open_tracking, process_owner
+from gdwm.zoo.registry import pin_references
 
 
 class RunError(Exception):
@@ -88,6 +89,24 @@ def ensure_data(cfg: DictConfig) -> dict:
     return read_dataset_meta(root)
 
 
+def env_settings(cfg: DictConfig, meta: dict) -> dict:
+    """RunEnv fields of a composed config (all but the tracking sink, parent run and progress actor)."""
+    res = {k: dict(v) for k, v in OmegaConf.to_container(cfg.cluster.resources, resolve=True).items()}
+    return dict(
+        cache_uri=cfg.cache.uri,
+        data_root=str(Path(cfg.data.root).resolve()),
+        data_fingerprint=meta["fingerprint"],
+        scenes=tuple(meta["scenes"]),
+        checkpoint_root=str(Path(cfg.workdir).resolve() / "checkpoints"),
+        resources=res,
+        on_scene_error=cfg.run.on_scene_error,
+        max_retries=cfg.run.max_retries,
+        seed=cfg.seed,
+        train_settings={"checkpoint_every": cfg.run.checkpoint_every, "max_failures": cfg.run.max_failures},
+        tracking_uri=cfg.tracking.uri,
+    )
+
+
 def _plan_result(sd, sub, env: RunEnv, ups: tuple[StageResult, ...], cache: Cache, rows: list[PlanRow]) -> StageResult:
     """Predict one stage's keys and cache status, assuming every upstream scene succeeds."""
     if sd.per_scene:
@@ -106,6 +125,11 @@ def _plan_result(sd, sub, env: RunEnv, ups: tuple[StageResult, ...], cache: Cach
 
 def plan(pipe: Pipeline, order: list[str], cfg: DictConfig, env: RunEnv) -> list[PlanRow]:
     """Keys depend on upstream keys, not outputs, so the whole DAG's keys are known before anything runs."""
+    return plan_keys(pipe, order, cfg, env)[0]
+
+
+def plan_keys(pipe: Pipeline, order: list[str], cfg: DictConfig, env: RunEnv) -> tuple[list[PlanRow], dict[str, str]]:
+    """``plan``'s rows, and each stage's key as its downstream sees it (per-scene stages: the aggregate key)."""
     cache = Cache(env.cache_uri)
     rows: list[PlanRow] = []
     predicted: dict[str, StageResult] = {}
@@ -113,7 +137,7 @@ def plan(pipe: Pipeline, order: list[str], cfg: DictConfig, env: RunEnv) -> list
         sd = pipe.stages[name]
         ups = tuple(predicted[u] for u in sd.upstream)
         predicted[name] = _plan_result(sd, subset(cfg, sd.config), env, ups, cache, rows)
-    return rows
+    return rows, {name: r.key for name, r in predicted.items()}
 
 
 def print_plan(rows: list[PlanRow], env: RunEnv) -> None:
@@ -183,21 +207,9 @@ def _cached_results(rows: list[PlanRow], cache: Cache) -> dict[str, StageResult]
 def run_pipeline(cfg: DictConfig, dry_run: bool = False, live: bool | None = None) -> RunSummary:
     pipe = load_pipeline(cfg, list(cfg.targets) or None)
     order = pipe.ancestors(list(cfg.targets)) if cfg.targets else list(pipe.order)
-    meta = ensure_data(cfg)
-    res = {k: dict(v) for k, v in OmegaConf.to_container(cfg.cluster.resources, resolve=True).items()}
-    workdir = Path(cfg.workdir).resolve()
-    base_env = dict(
-        cache_uri=cfg.cache.uri,
-        data_root=str(Path(cfg.data.root).resolve()),
-        data_fingerprint=meta["fingerprint"],
-        scenes=tuple(meta["scenes"]),
-        checkpoint_root=str(workdir / "checkpoints"),
-        resources=res,
-        on_scene_error=cfg.run.on_scene_error,
-        max_retries=cfg.run.max_retries,
-        seed=cfg.seed,
-        train_settings={"checkpoint_every": cfg.run.checkpoint_every, "max_failures": cfg.run.max_failures},
-    )
+    # zoo:NAME@ALIAS -> zoo:NAME/VERSION in what the stages to run read: their keys name exact versions
+    cfg = pin_references(cfg, cfg.tracking.uri, [k for name in order for k in pipe.stages[name].config])
+    base_env = env_settings(cfg, ensure_data(cfg))
     rows = plan(pipe, order, cfg, RunEnv(sink=None, parent_run_id=None, progress=None, **base_env))
     if dry_run or cfg.run.plan:
         print_plan(rows, RunEnv(sink=None, parent_run_id=None, progress=None, **base_env))

@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from gdwm.zoo.refs import NAME_PREFIX, ZooError, parse_ref
+
 RESOURCE_CLASSES = ("cpu", "gpu", "train", "eval")
 
 
@@ -94,6 +96,17 @@ class UpstreamOutput:
     """Per-scene stages: scene id -> local directory of that scene's entry (failed, skipped scenes absent)."""
 
 
+@dataclass(frozen=True)
+class Registration:
+    """A component a stage declared for the model zoo (``StageContext.register``)."""
+
+    name: str
+    path: str
+    """Relative to the stage's output directory; ``.`` is the whole output."""
+    variant: str
+    tags: Mapping[str, str] = field(default_factory=dict)
+
+
 @dataclass
 class StageContext:
     """Everything a stage function receives."""
@@ -117,12 +130,40 @@ class StageContext:
     progress_sink: Any = None
     seed: int = 0
     train_settings: Mapping[str, Any] = field(default_factory=dict)
+    tracking_uri: str | None = None
+    """MLflow store of the run (its model registry is the zoo ``zoo_path`` reads)."""
+    registrations: list[Registration] = field(default_factory=list)
+    """What ``register`` declared; the platform registers it once the output is published."""
 
     def cfg(self, dotted: str) -> Any:
         """One declared config subtree, e.g. ``ctx.cfg("stage.lora")``."""
         if dotted not in self.config:
             raise KeyError(f"stage '{self.name}' did not declare config '{dotted}' (declared: {sorted(self.config)})")
         return self.config[dotted]
+
+    def register(self, name: str, path: str | Path, variant: str, tags: Mapping[str, str] | None = None) -> None:
+        """Declare ``out_dir / path`` (written already; ``"."`` = the whole output) as model-zoo component ``name``
+        (``gdwm-<component>``) of variant ``variant``. Once the output is published it is logged as an MLflow model
+        of this stage's run and registered as a new version (alias ``candidate``) with its lineage as tags; a failed
+        stage registers nothing, and a cache hit nothing new."""
+        target = self.out_dir / path
+        if not name.startswith(NAME_PREFIX) or not variant:
+            raise ValueError(f"stage '{self.name}': zoo component '{name}' needs a {NAME_PREFIX}* name and a variant")
+        if not target.exists() or not target.resolve().is_relative_to(self.out_dir.resolve()):
+            raise FileNotFoundError(f"stage '{self.name}': zoo component '{name}': {path} is not in the stage output")
+        self.registrations.append(Registration(name, str(path), variant, dict(tags or {})))
+
+    def zoo_path(self, ref: str) -> Path:
+        """Local directory with the files of the zoo version ``zoo:NAME/VERSION`` (``gdwm run`` pins config values
+        like ``zoo:NAME@champion`` to that form before planning, so the stage's cache key names the version)."""
+        from gdwm.zoo.registry import download
+
+        r = parse_ref(ref)
+        if r.version is None:
+            raise ZooError(f"stage '{self.name}': zoo reference '{ref}' is not pinned to a version (zoo:NAME/VERSION)")
+        if self.tracking_uri is None:
+            raise ZooError(f"stage '{self.name}': no MLflow store to read '{ref}' from")
+        return download(self.tracking_uri, r.name, r.version, self.checkpoint_dir / "zoo" / r.name / str(r.version))
 
     def progress(self, done: int, total: int, message: str = "") -> None:
         if self.progress_sink is not None:

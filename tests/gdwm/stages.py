@@ -110,15 +110,17 @@ def tokenizer(ctx: StageContext) -> None:
 
 @stage("lora", "1", config=["stage.toy_lora"], upstream=["tokenizer"], resources="train")
 def lora(ctx: StageContext) -> None:
+    if ctx.cfg("stage.toy_lora")["rank"] < 0:
+        raise ValueError(f"stage.toy_lora.rank must be >= 0, got {ctx.cfg('stage.toy_lora')['rank']}")
     _train_stage(ctx, ctx.cfg("stage.toy_lora")["steps"], float(ctx.cfg("stage.toy_lora")["rank"]))
 
 
-@stage("evaluate_qa", "1", config=["stage.toy_evaluate_qa"], upstream=["lora"], resources="eval")
+@stage("evaluate_qa", "1", config=["stage.toy_evaluate_qa"], upstream=["lora"], resources="eval", evaluation=True)
 def evaluate_qa(ctx: StageContext) -> dict:
     _record(ctx)
     _inject(ctx)
     w = torch.load(ctx.upstream["lora"].path / "weights.pt", weights_only=True)["w"]
-    metrics = {"acc": float(w.sum())}
+    metrics = {"acc": float(w.sum()), "nuinteract/plan_acc": float(w.sum())}
     ctx.tracker.log_metrics(metrics)
     (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics))
     return metrics
@@ -129,7 +131,8 @@ def diffusion(ctx: StageContext) -> None:
     _train_stage(ctx, ctx.cfg("stage.toy_diffusion")["steps"], 0.5)
 
 
-@stage("evaluate_gen", "1", config=["stage.toy_evaluate_gen"], upstream=["diffusion"], resources="eval")
+@stage("evaluate_gen", "1", config=["stage.toy_evaluate_gen"], upstream=["diffusion"], resources="eval",
+       evaluation=True)  # fmt: skip
 def evaluate_gen(ctx: StageContext) -> dict:
     _record(ctx)
     _inject(ctx)

@@ -51,6 +51,13 @@ def test_gdwm_run_reconstruct_distill_tokenizer_lora_evaluate_qa(tmp_path):
     (tok,), (lo,) = cache.entries("tokenizer"), cache.entries("lora")
     assert {"world.json", "adapter.pt", "llm/model.safetensors", "llm/tokenizer.json"} <= {f.path for f in tok.files}
     assert {"lora/adapter_model.safetensors", "val_predictions.parquet"} <= {f.path for f in lo.files}
+    # both trained world models are zoo versions of their stage runs, with lineage; the newest is the candidate
+    (tok_v,), (lora_v,) = (client.search_model_versions(f"name = 'gdwm-{n}'") for n in ("tokenizer", "lora"))
+    assert (tok_v.run_id, tok_v.tags["gdwm.cache_key"]) == (runs["tokenizer"].info.run_id, tok.key)
+    assert tok_v.tags["gdwm.upstream.distill"] == tok.upstream["distill"]
+    assert lora_v.tags["gdwm.upstream.tokenizer"] == tok.key
+    assert lora_v.tags["gdwm.variant"] == "driving_aware+query_xattn+kl"
+    assert client.get_registered_model("gdwm-lora").aliases == {"candidate": 1}
     assert runs["lora"].data.metrics["val/loss_lm"] > 0
     assert runs["tokenizer"].data.metrics["skipped/train/instruction_without_gauss_placeholder"] == 1  # traj QA
     # evaluate_qa: every answered sample in the Parquet artifact, the suites' metrics on the stage and the run
@@ -60,7 +67,7 @@ def test_gdwm_run_reconstruct_distill_tokenizer_lora_evaluate_qa(tmp_path):
     assert preds.num_rows == runs["evaluate_qa"].data.metrics["count/answered"] == 24  # stage.evaluate_qa: tiny
     assert set(preds["task"].to_pylist()) <= {"rdp", "vg2d", "vg3d", "plan", "traj"}
     assert "predictions.parquet" in {a.path for a in client.list_artifacts(runs["evaluate_qa"].info.run_id)}
-    ev_metrics = runs["evaluate_qa"].data.metrics
+    ev_metrics = {k: v for k, v in runs["evaluate_qa"].data.metrics.items() if not k.startswith("system/")}
     assert 0 <= ev_metrics["nuinteract/rdp_bleu"] <= 100 and "omnidrive/rouge_l" in ev_metrics
     (parent,) = client.search_runs([exp.experiment_id], "tags.`gdwm.kind` = 'run'")
     assert {k: v for k, v in parent.data.metrics.items() if "/" in k} == ev_metrics  # the trial's metrics
@@ -68,6 +75,17 @@ def test_gdwm_run_reconstruct_distill_tokenizer_lora_evaluate_qa(tmp_path):
     again = subprocess.run(args, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "nothing to run" in again.stdout
     assert Counter(x.data.tags.get("gdwm.stage") for x in client.search_runs([exp.experiment_id]))["distill"] == 1
+    assert len(client.search_model_versions("name LIKE 'gdwm-%'")) == 2  # a cache hit registers nothing
+    # lora taken from the zoo: nothing trains, the pinned version's world model is the output, nothing is registered
+    from_zoo_args = [a for a in args if a != "targets=[evaluate_qa]"]
+    from_zoo_args += ["targets=[lora]", "stage.lora.source=zoo:gdwm-lora@candidate"]
+    zoo = subprocess.run(from_zoo_args, capture_output=True, text=True, timeout=300)
+    assert zoo.returncode == 0, zoo.stderr[-4000:]
+    (from_zoo,) = [m for m in cache.entries("lora") if m.key != lo.key]
+    assert from_zoo.config["stage.lora"]["source"] == "zoo:gdwm-lora/1" and from_zoo.extra["trained"] == 0.0
+    lora_dir = tmp_path / "cache" / "lora"
+    world = [(lora_dir / m.key[:2] / m.key / "world.json").read_text() for m in (lo, from_zoo)]
+    assert world[0] == world[1] and len(client.search_model_versions("name LIKE 'gdwm-%'")) == 2
 
 
 TINY = [

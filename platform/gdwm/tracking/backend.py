@@ -26,6 +26,7 @@ from gdwm.tracking.params import (
     flatten_params,
     truncate,
 )
+from gdwm.zoo import registry as zoo
 
 log = logging.getLogger(__name__)
 
@@ -121,6 +122,15 @@ class TrackingBackend:
 
     def log_text(self, run_id: str, text: str, artifact_file: str) -> None:
         self.client.log_text(run_id, text, artifact_file)
+
+    def register_component(self, run_id: str, name: str, local_path: str, variant: str, tags: Mapping[str, str]) -> int:
+        """Log ``local_path`` as the MLflow model ``zoo/<name>`` of the run and register it as a new version of
+        ``name`` (alias ``candidate``); returns the version."""
+        return zoo.register(self.client, run_id, name, local_path, variant, tags)
+
+    def tag_versions(self, cache_keys: list[str], tags: Mapping[str, str]) -> list[tuple[str, int]]:
+        """Add ``tags`` to the zoo versions registered by the stage runs with these cache keys."""
+        return zoo.tag_versions(self.client, cache_keys, tags)
 
     def end_run(self, run_id: str, status: str = "FINISHED") -> None:
         if status not in TERMINAL:

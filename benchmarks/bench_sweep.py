@@ -1,0 +1,59 @@
+"""journal_ablation as one sweep (shared stages once, one cache) vs its five trials as independent ``gdwm run``s
+with no shared cache, side by side in one run on a small synthetic_mini with tiny flavors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from benchmarks.common import Result
+from gdwm.config import load_config
+from gdwm.sweep import compose, expand, user_overrides
+
+TINY = [
+    "stage/reconstruct=tiny",
+    "stage/distill=tiny",
+    "stage/tokenizer=tiny",
+    "stage/lora=tiny",
+    "stage/evaluate_qa=tiny",
+    "run.live=false",
+]
+
+
+def _gdwm(*args: str) -> float:
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "gdwm", *args], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"gdwm {' '.join(args)} failed:\n{r.stderr[-3000:]}")
+    return time.perf_counter() - t0
+
+
+def run(quick: bool = False) -> list[Result]:
+    with tempfile.TemporaryDirectory(prefix="gdwm-bench-sweep-") as tmp:
+        tmp = Path(tmp)
+        data = [f"data.root={tmp / 'data'}", "data.num_scenes=2", "data.width=64", "data.height=36"]
+        _gdwm("data", "synth", *data)  # one dataset: both sides read it
+        base = [*data, *TINY]
+        t_sweep = _gdwm("sweep", "sweep=journal_ablation", f"workdir={tmp / 'sweep'}", *base)
+        # the same trials, each as its own `gdwm run` in its own workdir (own cache, own store)
+        sweep = OmegaConf.to_object(load_config(["sweep=journal_ablation", *base]).sweep)
+        trials = expand(sweep)
+        compose(sweep, trials, user_overrides([*base, f"workdir={tmp / 'plan'}"]))
+        naive = sum(len(t.order) for t in trials)
+        distinct = len({(n, t.keys[n]) for t in trials for n in t.order})
+        t_runs = 0.0
+        for t in trials:
+            targets = f"targets=[{','.join(sweep.targets)}]"
+            t_runs += _gdwm("run", targets, f"workdir={tmp / f'run{t.index}'}", *base, *sweep.overrides, *t.overrides)
+    ratio = t_sweep / t_runs
+    detail = f"sweep {t_sweep:.0f} s vs 5 independent runs {t_runs:.0f} s"
+    return [
+        Result("sweep", "journal_ablation sweep / independent runs", ratio, "x", 0.5, "<=", detail),
+        Result("sweep", "stage executions saved", float(naive - distinct), "", None, "<=",
+               f"{distinct} distinct stage keys vs {naive} stage executions as independent runs"),
+    ]  # fmt: skip

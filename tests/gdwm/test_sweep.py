@@ -1,0 +1,139 @@
+"""`gdwm sweep` end to end on local Ray with the toy stages: shared stages run once (counted from the stages' own
+log and from MLflow), trials are child runs of one sweep run, resume and extension never duplicate a run."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+
+import pytest
+
+from tests.gdwm.test_run import Toy, _ok
+
+
+def _sweep(toy: Toy, *overrides: str, **inject: str) -> subprocess.CompletedProcess:
+    args = [sys.executable, "-m", "gdwm", "sweep", f"workdir={toy.work}", f"data.root={toy.data}", *overrides]
+    return subprocess.run(args, env=toy.env(**inject), capture_output=True, text=True, timeout=600)
+
+
+def _trials(toy: Toy) -> dict[str, object]:
+    return {r.data.tags["gdwm.row"]: r for r in toy.runs("trial")}
+
+
+@pytest.fixture(scope="module")
+def swept(tmp_path_factory) -> Toy:
+    toy = Toy(tmp_path_factory.mktemp("sweep"))
+    r = _sweep(toy, "sweep=toy_ablation")
+    _ok(r)
+    toy.stdout = r.stdout
+    return toy
+
+
+def test_shared_stages_run_exactly_once(swept):
+    # 3 trials x (3 scenes x 2 per-scene stages + tokenizer + lora + evaluate_qa) = 27 as independent runs
+    assert Counter(s for s, _ in swept.executions()) == {
+        "reconstruct": 3,
+        "distill": 3,
+        "tokenizer": 1,
+        "lora": 3,
+        "evaluate_qa": 3,
+    }
+    stage_runs = Counter(r.data.tags["gdwm.stage"] for r in swept.runs())
+    assert stage_runs == {"reconstruct": 1, "distill": 1, "tokenizer": 1, "lora": 3, "evaluate_qa": 3}
+    assert "sweep: 3 trials, 9 stage executions run (15 as independent runs without a cache)" in swept.stdout
+    assert "(shared by 3 trials)" in swept.stdout  # tokenizer
+
+
+def test_one_parent_with_a_child_per_trial(swept):
+    (parent,) = swept.runs("sweep")
+    assert parent.info.status == "FINISHED" and parent.data.tags["gdwm.sweep"] == "toy_ablation"
+    assert parent.data.metrics["stage_executions"] == 9 and parent.data.metrics["trials"] == 3
+    trials = _trials(swept)
+    assert sorted(trials) == ["rank 2", "rank 4", "rank 8"]
+    assert {t.data.tags["mlflow.parentRunId"] for t in trials.values()} == {parent.info.run_id}
+    assert {t.info.status for t in trials.values()} == {"FINISHED"}
+    assert trials["rank 8"].data.tags["gdwm.factor.Rank"] == "8"
+    assert trials["rank 8"].data.params["stage.toy_lora.rank"] == "8"
+    # the toy evaluate_qa sums lora weights that grow by `rank` per step (3 steps, 4 dims)
+    assert {k: t.data.metrics["acc"] for k, t in trials.items()} == {"rank 2": 24.0, "rank 4": 48.0, "rank 8": 96.0}
+    # every trial links the stage runs it used; the shared tokenizer run is the same for all three
+    tok = {t.data.tags["gdwm.stage_run.tokenizer"] for t in trials.values()}
+    assert len(tok) == 1 and tok <= {r.info.run_id for r in swept.runs()}
+    assert len({t.data.tags["gdwm.stage_run.lora"] for t in trials.values()}) == 3
+
+
+def test_report_written_and_logged_to_the_sweep_run(swept):
+    md = (swept.work / "reports" / "toy_ablation" / "nuinteract.md").read_text()
+    assert "**96.00**" in md and "<u>48.00</u>" in md  # plan accuracy: best and second
+    (parent,) = swept.runs("sweep")
+    logged = {a.path for a in swept.client().list_artifacts(parent.info.run_id, "compare/nuinteract")}
+    assert "compare/nuinteract/nuinteract.html" in logged
+
+
+def test_rerun_is_all_cached_and_extending_runs_only_new_stages(swept, tmp_path):
+    from tests.gdwm.test_run import _copy
+
+    toy = _copy(swept, tmp_path)
+    dry = _sweep(toy, "sweep=toy_ablation_more", "--dry-run")
+    _ok(dry)
+    assert "2 stage executions to run, 0 shared, 18 cached" in dry.stdout
+    _ok(_sweep(toy, "sweep=toy_ablation_more"))
+    assert sorted(s for s, _ in toy.executions()) == ["evaluate_qa", "lora"]  # only the new row's
+    trials = _trials(toy)
+    assert sorted(trials) == ["rank 2", "rank 4", "rank 6", "rank 8"] and len(toy.runs("trial")) == 4
+    assert len(toy.runs("sweep")) == 1  # the same sweep run continued
+    assert trials["rank 6"].data.metrics["acc"] == 72.0
+
+
+def test_bad_row_is_rejected_before_launch(tmp_path):
+    toy = Toy(tmp_path)
+    r = _sweep(toy, "sweep=toy_bad_row")
+    assert r.returncode == 2
+    assert "sweep 'toy_bad_row' row 'typo'" in r.stderr and "stage.toy_lora.rnak" in r.stderr
+    assert not (toy.work / "mlflow.db").exists() and not (tmp_path / "executions.log").exists()
+
+
+def test_failing_trial_does_not_stop_the_others(tmp_path):
+    toy = Toy(tmp_path)
+    r = _sweep(toy, "sweep=toy_grid")
+    assert r.returncode == 1
+    assert "trial 'short, stage.toy_lora.rank=-1' failed at lora" in r.stderr
+    trials = _trials(toy)
+    assert {k: t.info.status for k, t in trials.items()} == {
+        "short, stage.toy_lora.rank=3": "FINISHED",
+        "short, stage.toy_lora.rank=-1": "FAILED",
+        "long, stage.toy_lora.rank=3": "FINISHED",
+        "long, stage.toy_lora.rank=-1": "FAILED",
+    }
+    bad = trials["long, stage.toy_lora.rank=-1"]
+    assert bad.data.tags["gdwm.failed_stage"] == "lora" and "rank must be >= 0" in bad.data.tags["gdwm.error"]
+    assert Counter(s for s, _ in toy.executions())["tokenizer"] == 2  # short and long: two keys
+    md = (toy.work / "reports" / "toy_grid" / "nuinteract.md").read_text()
+    assert "failed at lora" in md
+
+
+def test_sigkilled_driver_resumes_the_sweep_without_duplicates(tmp_path):
+    toy = Toy(tmp_path)
+    args = [sys.executable, "-m", "gdwm", "sweep", "sweep=toy_ablation", f"workdir={toy.work}", f"data.root={toy.data}"]
+    proc = subprocess.Popen(args, env=toy.env(GDWM_TEST_BLOCK="lora:step=1"), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)  # fmt: skip
+    try:
+        deadline = time.time() + 240
+        while not (tmp_path / "blocked-lora").exists():
+            assert proc.poll() is None and time.time() < deadline, proc.communicate()[1][-3000:]
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert "RUNNING" in {r.info.status for r in toy.runs("trial")}  # left behind by the killed driver
+    _ok(_sweep(toy, "sweep=toy_ablation"))
+    runs = toy.runs("trial") + toy.runs("sweep") + toy.runs()
+    assert [r.info.status for r in runs if r.info.status != "FINISHED"] == []
+    assert len(toy.runs("trial")) == 3 and len(toy.runs("sweep")) == 1
+    assert max(Counter(r.data.tags["gdwm.cache_key"] for r in toy.runs()).values()) == 1
+    assert Counter(s for s, _ in toy.executions())["tokenizer"] == 1  # finished before the kill: not redone
