@@ -24,8 +24,8 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP) ## create .venv and install gdwm with dev tools
 
-demo: setup ## generate synthetic_mini and print its summary (workdir ./gdwm-work)
-	$(VENV)/bin/gdwm data synth workdir=$(WORKDIR) overwrite=true
+demo: setup ## journal_ablation on synthetic_mini (local Ray): the paper-layout table, HTML report, zoo (./gdwm-work)
+	$(VENV)/bin/gdwm sweep sweep=journal_ablation experiment=demo workdir=$(WORKDIR)
 
 # pytest exits 5 when it collected no test: that is a broken suite, not a pass.
 define run_pytest

@@ -149,9 +149,24 @@ def _sweep(cfg: DictConfig, args: list[str]) -> int:
         f"({summary.naive} as independent runs without a cache), {time.perf_counter() - t0:.0f} s"
     )
     report(cfg, load_sweep(cfg), args)
+    work = f" workdir={cfg.workdir}" if cfg.workdir != "./gdwm-work" else ""
+    console.print(f"registered variants: gdwm zoo list{work}")
+    console.print(f"MLflow UI: gdwm ui{work}  ->  {ui_url(cfg)}")
     for label, msg in summary.failed.items():
         err_console.print(f"gdwm sweep: trial '{label}' failed at {msg}", markup=False)
     return 1 if summary.failed else 0
+
+
+def _regress(cfg: DictConfig, args: list[str]) -> int:
+    from gdwm.dag import DagError
+    from gdwm.regress import RegressError, regress
+    from gdwm.runner import RunError
+
+    try:
+        return regress(cfg, args)
+    except (RegressError, DagError, RunError) as e:
+        err_console.print(f"gdwm regress: {e}", markup=False)
+        return 2
 
 
 def _compare(cfg: DictConfig, _args: list[str]) -> int:
@@ -241,6 +256,15 @@ COMMANDS: dict[str, dict[str, Command]] = {
             "run an ablation table: sweep=NAME (conf/sweep/), overrides for every trial; shared stages run once; "
             "--dry-run prints trials x stages (cached / shared / to run)",
             flags=("--dry-run",),
+        ),
+    },
+    "regress": {
+        "": Command(
+            _regress,
+            "benchmark regression: benchmark=NAME (conf/benchmark/, default nightly) vs its baseline; exit 0 ok, "
+            "1 regression, 2 error; --set-baseline records this run as the baseline",
+            defaults=["benchmark=nightly"],
+            flags=("--set-baseline",),
         ),
     },
     "compare": {

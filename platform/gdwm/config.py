@@ -154,6 +154,8 @@ class GdwmConfig:
     """Table layout of ``gdwm compare`` (group ``compare/``)."""
     sweep: Any = None
     """Ablation table or grid of ``gdwm sweep`` (group ``sweep/``)."""
+    benchmark: Any = None
+    """Regression suite of ``gdwm regress`` (group ``benchmark/``)."""
     ui: UiConfig = field(default_factory=UiConfig)
     """MLflow UI address."""
     cache: CacheConfig = field(default_factory=CacheConfig)
@@ -175,6 +177,9 @@ def _register_platform(cs: ConfigStore) -> None:
     from gdwm.sweep import SweepConfig
 
     cs.store(group="schema/sweep", name="sweep", node=SweepConfig)
+    from gdwm.regress import BenchmarkConfig
+
+    cs.store(group="schema/benchmark", name="benchmark", node=BenchmarkConfig)
     cs.store(group="schema/args", name="compare", node=CompareArgs)
     from gdwm.zoo.refs import ZooArgs
 
@@ -271,7 +276,11 @@ def explain(e: Exception) -> str:
     if not full_key:
         m = re.search(r"full_key: (\S+)", text)
         full_key = m.group(1) if m else None
-    head = text.splitlines()[0].strip()
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    head = lines[0]
+    where = re.match(r"In '([^']+)': \w+ raised while composing config:$", head)
+    if where and len(lines) > 1:  # Hydra's wrapper: the validation message is the next line
+        head = f"{lines[1]} (in {where.group(1)})"
     if isinstance(inner, MissingMandatoryValue):
         return f"missing mandatory value '{full_key}': set it with {full_key}=VALUE."
     if full_key and "not in" in head:

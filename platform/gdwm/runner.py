@@ -195,9 +195,10 @@ def _cached_results(rows: list[PlanRow], cache: Cache) -> dict[str, StageResult]
     """Every stage's entry (local directory, per scene where it fans out) when the whole plan is cached."""
     out: dict[str, StageResult] = {}
     for r in rows:
-        path = str(cache.materialize(cache.lookup(r.stage, r.key, verify=False)))
+        m = cache.lookup(r.stage, r.key, verify=False)
+        path = str(cache.materialize(m))
         if r.scene is None:
-            out[r.stage] = StageResult(r.stage, r.key, True, None, path=path)
+            out[r.stage] = StageResult(r.stage, r.key, True, m.run_id, path=path, extra=dict(m.extra))
         else:
             res = out.setdefault(r.stage, StageResult(r.stage, "", True, None, scenes={}))
             res.scenes[r.scene] = (r.key, path)  # type: ignore[index]

@@ -120,7 +120,8 @@ def evaluate_qa(ctx: StageContext) -> dict:
     _record(ctx)
     _inject(ctx)
     w = torch.load(ctx.upstream["lora"].path / "weights.pt", weights_only=True)["w"]
-    metrics = {"acc": float(w.sum()), "nuinteract/plan_acc": float(w.sum())}
+    acc = float(w.sum())
+    metrics = {"acc": acc, "nuinteract/plan_acc": acc, "nuinstruct/mae": 100 / (1 + acc)}
     ctx.tracker.log_metrics(metrics)
     (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics))
     return metrics

@@ -63,6 +63,8 @@ def _holds(node, value) -> bool:
         return True
     if isinstance(value, dict):
         return all(k in node and _holds(node[k], v) for k, v in value.items())
+    if isinstance(value, list) and any(isinstance(v, dict) for v in value):
+        return len(node) == len(value) and all(_holds(n, v) for n, v in zip(node, value, strict=True))
     return node == value
 
 
