@@ -41,7 +41,8 @@ def test_passes_against_its_own_baseline(baselined):
 
 
 def test_weakened_model_fails_naming_the_metric(baselined):
-    r = _regress(baselined, "benchmark=toy_nightly", "experiment=toy", "stage.toy_lora.rank=1")  # plan_acc 12, MAE 100/13
+    # the weakened model: plan_acc 12, MAE 100/13
+    r = _regress(baselined, "benchmark=toy_nightly", "experiment=toy", "stage.toy_lora.rank=1")
     assert r.returncode == 1, r.stderr[-3000:]
     assert "regression: nuinteract/plan_acc 48 -> 12 (tolerance 1 ↑)" in r.stderr
     assert "regression: nuinstruct/mae 2.041 -> 7.692 (tolerance 10% ↓)" in r.stderr  # lower is better
@@ -50,7 +51,8 @@ def test_weakened_model_fails_naming_the_metric(baselined):
 
 
 def test_better_model_is_improved_not_a_regression(baselined):
-    r = _regress(baselined, "benchmark=toy_nightly", "experiment=toy", "stage.toy_lora.rank=8")  # plan_acc 96, MAE lower
+    # a better model: plan_acc 96, MAE lower
+    r = _regress(baselined, "benchmark=toy_nightly", "experiment=toy", "stage.toy_lora.rank=8")
     _ok(r)
     assert r.stdout.count("improved") == 2
 

@@ -12,7 +12,9 @@ from typing import Any
 import ray
 from mlflow import MlflowClient
 from mlflow.entities import Metric, Param, RunStatus, RunTag, ViewType
+from mlflow.exceptions import MlflowException
 from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+from mlflow.utils.credentials import read_mlflow_creds
 from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID
 from ray.actor import ActorHandle
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
@@ -57,12 +59,18 @@ class TrackingBackend:
     def _connect(self) -> None:
         self.client = MlflowClient(self.uri)
         self._monitors: dict[str, SystemMetricsMonitor] = {}
-        exp = self.client.get_experiment_by_name(self.experiment)
-        if exp is None:
-            self.experiment_id = self.client.create_experiment(self.experiment, self.artifact_location)
-            return
-        if exp.lifecycle_stage == "deleted":
-            self.client.restore_experiment(exp.experiment_id)
+        try:
+            exp = self.client.get_experiment_by_name(self.experiment)
+            if exp is None:
+                self.experiment_id = self.client.create_experiment(self.experiment, self.artifact_location)
+                return
+            if exp.lifecycle_stage == "deleted":
+                self.client.restore_experiment(exp.experiment_id)
+        except MlflowException as e:
+            refused = _refused(self.uri, self.experiment, e)
+            if refused is None:
+                raise
+            raise refused from e
         self.experiment_id = exp.experiment_id
 
     # Shipped to workers in server mode: reconnect there instead of pickling a client and its threads.
@@ -200,6 +208,20 @@ class TrackingBackend:
         if killed:
             log.warning("reconciled %d run(s) left RUNNING by dead owners: %s", len(killed), ", ".join(killed))
         return killed
+
+
+def _refused(uri: str, experiment: str, e: MlflowException) -> PermissionError | None:
+    """A server's 401/403 as an error that says what to set (the CLI prints it, exit 1); None for others."""
+    user = read_mlflow_creds().username  # the name only, never the password
+    status = e.get_http_status_code()
+    if status == 401:
+        who = f"rejected the credentials of user '{user}'" if user else "needs credentials"
+        return PermissionError(
+            f"MLflow server {uri} {who} (401): set MLFLOW_TRACKING_USERNAME/MLFLOW_TRACKING_PASSWORD"
+        )
+    if status == 403:
+        return PermissionError(f"MLflow server {uri} denied user '{user}' access to experiment '{experiment}' (403)")
+    return None
 
 
 def _run_dict(run) -> dict:
