@@ -50,6 +50,7 @@ def test_weakened_model_fails_naming_the_metric(baselined):
     assert "fail" in {x.data.tags["gdwm.verdict"] for x in runs}
 
 
+@pytest.mark.slow
 def test_better_model_is_improved_not_a_regression(baselined):
     # a better model: plan_acc 96, MAE lower
     r = _regress(baselined, "benchmark=toy_nightly", "experiment=toy", "stage.toy_lora.rank=8")

@@ -73,6 +73,7 @@ def test_report_written_and_logged_to_the_sweep_run(swept):
     assert "compare/nuinteract/nuinteract.html" in logged
 
 
+@pytest.mark.slow
 def test_rerun_is_all_cached_and_extending_runs_only_new_stages(swept, tmp_path):
     from tests.gdwm.test_run import _copy
 
@@ -96,6 +97,7 @@ def test_bad_row_is_rejected_before_launch(tmp_path):
     assert not (toy.work / "mlflow.db").exists() and not (tmp_path / "executions.log").exists()
 
 
+@pytest.mark.slow
 def test_failing_trial_does_not_stop_the_others(tmp_path):
     toy = Toy(tmp_path)
     r = _sweep(toy, "sweep=toy_grid")
@@ -115,6 +117,7 @@ def test_failing_trial_does_not_stop_the_others(tmp_path):
     assert "failed at lora" in md
 
 
+@pytest.mark.slow
 def test_sigkilled_driver_resumes_the_sweep_without_duplicates(tmp_path):
     toy = Toy(tmp_path)
     args = [sys.executable, "-m", "gdwm", "sweep", "sweep=toy_ablation", f"workdir={toy.work}", f"data.root={toy.data}"]

@@ -117,6 +117,7 @@ def test_promote_then_load_returns_the_stage_output_byte_for_byte(zoo, tmp_path)
     assert zoo.aliases() == {"candidate": 2, "champion": 2}
 
 
+@pytest.mark.slow
 def test_a_cache_hit_or_a_failed_stage_registers_nothing(zoo):
     hit = _ok(zoo.run("targets=[zoo_train]"))
     assert "nothing to run" in hit.stdout
@@ -129,6 +130,7 @@ def test_a_cache_hit_or_a_failed_stage_registers_nothing(zoo):
     assert sorted(zoo.versions()) == [1, 2]
 
 
+@pytest.mark.slow
 def test_a_stage_reading_the_zoo_uses_the_pinned_version(zoo):
     cache = Cache(zoo.work / "cache")
     seen = {}
