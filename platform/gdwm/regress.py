@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib
 import math
 import re
+import sys
 import tempfile
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -20,7 +21,7 @@ from pathlib import Path
 from omegaconf import MISSING, DictConfig, OmegaConf
 from rich.table import Table
 
-from gdwm.config import ConfigError, load_config
+from gdwm.config import ConfigError, conf_dir, load_config
 from gdwm.term import console, err_console
 
 KIND = "regression"
@@ -107,11 +108,17 @@ def failed(rows: list[Row]) -> list[Row]:
 def perf_metrics(names: list[str]) -> dict[str, float]:
     """Figures of ``benchmarks/`` (quick mode) as ``perf/<bench>/<metric>`` metrics."""
     out = {}
+    root = str(conf_dir().parent)  # benchmarks/ sits next to conf/ in a checkout (and in the k8s image)
+    if names and root not in sys.path:
+        sys.path.append(root)
     for name in names:
         try:
             mod = importlib.import_module(f"benchmarks.bench_{name}")
         except ImportError as e:
-            raise RegressError(f"benchmark.perf: no performance benchmark '{name}' (benchmarks/bench_{name}.py)") from e
+            raise RegressError(
+                f"benchmark.perf: performance benchmark '{name}' (benchmarks/bench_{name}.py under {root}) does not "
+                f"import: {e}"
+            ) from e
         for r in mod.run(quick=True):
             out[f"perf/{name}/{_slug(r.metric)}"] = float(r.value)
     return out

@@ -235,6 +235,7 @@ def run_pipeline(cfg: DictConfig, dry_run: bool = False, live: bool | None = Non
             evaluated = evaluation_metrics(pipe, summary.results)
             if evaluated:
                 call(sink, "log_metrics", parent, evaluated)
+            log_evaluation_tables(sink, parent, pipe, summary.results)
             if summary.failed:
                 raise StageFailed(next(iter(summary.failed)), {None: next(iter(summary.failed.values()))})
     except StageFailed:
@@ -257,6 +258,14 @@ def evaluation_metrics(pipe: Pipeline, results: dict[str, StageResult]) -> dict[
         if pipe.stages[name].evaluation:
             out |= {k: float(v) for k, v in r.extra.items() if isinstance(v, int | float) and not isinstance(v, bool)}
     return out
+
+
+def log_evaluation_tables(sink, run_id: str, pipe: Pipeline, results: dict[str, StageResult]) -> None:
+    """The evaluation stages' per-sample tables (``*.parquet``) as artifacts of the trial's run, ``<stage>/``."""
+    for name, r in results.items():
+        if pipe.stages[name].evaluation and r.path:
+            for table in sorted(Path(r.path).glob("*.parquet")):
+                call(sink, "log_artifact", run_id, str(table), name)
 
 
 def _parent_run(sink, cfg: DictConfig, pipe: Pipeline, run_key: str) -> str:

@@ -35,6 +35,7 @@ from gdwm.runner import (
     env_settings,
     evaluation_metrics,
     init_ray,
+    log_evaluation_tables,
     plan_keys,
     subset,
 )
@@ -298,6 +299,7 @@ def _finish_trial(sink, sweep: SweepConfig, t: Trial, results: dict, summary: Sw
     metrics = evaluation_metrics(t.pipe, ok)
     if metrics:
         call(sink, "log_metrics", t.run_id, metrics)
+    log_evaluation_tables(sink, t.run_id, t.pipe, ok)
     # the zoo versions this trial's stages registered carry its sweep, trial and key metrics
     lineage = {"gdwm.sweep": sweep.name, "gdwm.trial": t.run_id, "gdwm.row": t.label}
     lineage |= metric_tags({k: v for k, v in metrics.items() if not k.startswith("count/")})

@@ -72,6 +72,9 @@ def test_gdwm_run_reconstruct_distill_tokenizer_lora_evaluate_qa(tmp_path):
     assert 0 <= ev_metrics["nuinteract/rdp_bleu"] <= 100 and "omnidrive/rouge_l" in ev_metrics
     (parent,) = client.search_runs([exp.experiment_id], "tags.`gdwm.kind` = 'run'")
     assert {k: v for k, v in parent.data.metrics.items() if "/" in k} == ev_metrics  # the trial's metrics
+    assert [a.path for a in client.list_artifacts(parent.info.run_id, "evaluate_qa")] == [
+        "evaluate_qa/predictions.parquet"
+    ]
     # a second run is all cache hits
     again = subprocess.run(args, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "nothing to run" in again.stdout
