@@ -11,8 +11,9 @@ ground truths; written here because pycocotools' COCOeval needs images, categori
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -26,7 +27,9 @@ MATCH_DIST_M = 2.0
 """3D threshold of precision and F1."""
 RECALL_POINTS = np.linspace(0.0, 1.0, 101)
 
-_NUM = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
+NUMBER = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
+"""A decimal number in an answer (the grounding and the regression parsers share it)."""
+_NUM = NUMBER
 _PAIR = rf"\(\s*({_NUM})\s*,\s*({_NUM})\s*\)"
 _BOX = re.compile(rf"(?:<(\w+)>\s*)?<box>\s*{_PAIR}\s*,\s*{_PAIR}\s*</box>")
 _TRIPLE = rf"\(\s*({_NUM})\s*,\s*({_NUM})\s*,\s*({_NUM})\s*\)"
@@ -99,25 +102,35 @@ def precision_recall_f1(hits: Sequence[bool], num_gt: int) -> tuple[float, float
     return 100 * p, 100 * r, (200 * p * r / (p + r) if p + r else 0.0)
 
 
+def parsed_pairs(
+    answers: Sequence[str], predictions: Sequence[str], parse_ref: Callable, parse_pred: Callable
+) -> tuple[list[tuple[Any, Any]], int]:
+    """(parsed reference, parsed prediction or None) of every sample whose reference parses; and how many did not
+    (those are counted as bad answers, not scored)."""
+    pairs, bad = [], 0
+    for answer, prediction in zip(answers, predictions, strict=True):
+        gt = parse_ref(answer)
+        if gt is None:
+            bad += 1
+            continue
+        pairs.append((gt, parse_pred(prediction)))
+    return pairs, bad
+
+
 def score_2d(answers: Sequence[str], predictions: Sequence[str]) -> Scored:
     """``map`` (IoU 0.50:0.05:0.95), ``f1`` (IoU 0.5) and ``miou`` (misses count 0), in sample order.
 
     A box tagged with another camera than the reference's has IoU 0.
     """
-    ious, parsed, bad = [], [], 0
-    for answer, prediction in zip(answers, predictions, strict=True):
-        gt = parse_box(answer)
-        if gt is None:
-            bad += 1
-            continue
-        box = parse_box(prediction)
-        parsed.append(box is not None)
-        same_camera = box is not None and (gt[0] is None or box[0] is None or gt[0] == box[0])
-        ious.append(box_iou(gt[1], box[1]) if same_camera else 0.0)
-    n = len(ious)
+    pairs, bad = parsed_pairs(answers, predictions, parse_box, parse_box)
+    n = len(pairs)
     if n == 0:
         return Scored({}, 0, 0, bad)
-    iou, ok = np.asarray(ious), np.asarray(parsed)
+    ok = np.asarray([box is not None for _, box in pairs])
+    iou = np.asarray([
+        box_iou(gt[1], box[1]) if box is not None and (gt[0] is None or box[0] is None or gt[0] == box[0]) else 0.0
+        for gt, box in pairs
+    ])  # fmt: skip
     metrics = {
         "map": float(np.mean([average_precision(iou[ok] >= t, n) for t in IOU_THRESHOLDS])),
         "f1": precision_recall_f1(iou[ok] >= MATCH_IOU, n)[2],
@@ -128,18 +141,12 @@ def score_2d(answers: Sequence[str], predictions: Sequence[str]) -> Scored:
 
 def score_3d(answers: Sequence[str], predictions: Sequence[str]) -> Scored:
     """``map`` (mean AP over 0.5/1/2/4 m), ``precision`` and ``f1`` (2 m) by ego-xy centre distance, in sample order."""
-    dists, n, bad = [], 0, 0  # dists: of the parsed predictions
-    for answer, prediction in zip(answers, predictions, strict=True):
-        gt = parse_centre_size(answer)
-        if gt is None:
-            bad += 1
-            continue
-        n += 1
-        if (pred := parse_centre_size(prediction)) is not None:
-            dists.append(float(np.hypot(pred[0][0] - gt[0][0], pred[0][1] - gt[0][1])))
+    pairs, bad = parsed_pairs(answers, predictions, parse_centre_size, parse_centre_size)
+    n = len(pairs)
     if n == 0:
         return Scored({}, 0, 0, bad)
-    d = np.asarray(dists)
+    # distances of the parsed predictions only
+    d = np.asarray([float(np.hypot(p[0][0] - g[0][0], p[0][1] - g[0][1])) for g, p in pairs if p is not None])
     p, _, f1 = precision_recall_f1(d < MATCH_DIST_M, n)
     ap = [average_precision(d < t, n) for t in DIST_THRESHOLDS_M]
     return Scored({"map": float(np.mean(ap)), "precision": p, "f1": f1}, n, n - d.size, bad)

@@ -13,9 +13,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pipelines.evaluate.grounding import Scored
+from pipelines.evaluate.grounding import NUMBER, Scored, parsed_pairs
 
-_NUMBER = re.compile(r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?")
+_NUMBER = re.compile(NUMBER)
 
 
 def parse_decision(text: str, labels: Sequence[str] | None = None) -> str | None:
@@ -36,28 +36,16 @@ def decision_accuracy(
     answers: Sequence[str], predictions: Sequence[str], labels: Sequence[str] | None = None
 ) -> Scored:
     """``acc`` (0–100): share of samples whose predicted decision equals the reference's."""
-    correct, n, malformed, bad = 0, 0, 0, 0
-    for answer, prediction in zip(answers, predictions, strict=True):
-        gt = parse_decision(answer)
-        if gt is None:
-            bad += 1
-            continue
-        n += 1
-        pred = parse_decision(prediction, labels)
-        malformed += pred is None
-        correct += pred == gt
+    pairs, bad = parsed_pairs(answers, predictions, parse_decision, lambda text: parse_decision(text, labels))
+    n = len(pairs)
+    correct = sum(pred == gt for gt, pred in pairs)
+    malformed = sum(pred is None for _, pred in pairs)
     return Scored({"acc": 100 * correct / n} if n else {}, n, malformed, bad)
 
 
 def regression_mae(answers: Sequence[str], predictions: Sequence[str]) -> Scored:
     """``mae``: mean absolute error of the first numbers, in the answers' unit (metres for distances), not x100."""
-    errors, n, bad = [], 0, 0
-    for answer, prediction in zip(answers, predictions, strict=True):
-        gt = parse_number(answer)
-        if gt is None:
-            bad += 1
-            continue
-        n += 1
-        if (pred := parse_number(prediction)) is not None:
-            errors.append(abs(pred - gt))
+    pairs, bad = parsed_pairs(answers, predictions, parse_number, parse_number)
+    errors = [abs(pred - gt) for gt, pred in pairs if pred is not None]
+    n = len(pairs)
     return Scored({"mae": float(np.mean(errors))} if errors else {}, n, n - len(errors), bad)
