@@ -99,7 +99,7 @@ def diffusion_vae(ctx: StageContext) -> dict:
     return metrics
 
 
-def _examples(ds, targets: list[GenTarget], rec_dirs: dict[str, Path], hw) -> tuple[list[GenExample], int]:
+def build_examples(ds, targets: list[GenTarget], rec_dirs: dict[str, Path], hw) -> tuple[list[GenExample], int]:
     out, skipped, cache = [], 0, {}
     for t in targets:
         key = (t.scene, t.frame)
@@ -197,7 +197,7 @@ def train_loop(s: TrainSession) -> None:
             s.report(step, {**parts, "lr": opt.param_groups[0]["lr"]}, state=state)
 
 
-def _save_grid(path: Path, ex: GenExample, rgb: torch.Tensor) -> None:
+def save_grid(path: Path, ex: GenExample, rgb: torch.Tensor) -> None:
     """reference | condition | generated | ground truth, one row."""
     tiles = [ex.ref_rgb, ex.cond_rgb, rgb.cpu(), ex.target_rgb]
     row = torch.cat([t.clamp(0, 1) for t in tiles], dim=2).permute(1, 2, 0).numpy()
@@ -223,7 +223,7 @@ def diffusion(ctx: StageContext) -> dict:
     hw = mcfg.image_size
 
     train_targets = enumerate_targets(ds, splits["train"], cfg.cameras, cfg.shifts_m, cfg.horizons_s, cfg.weathers)
-    examples, skipped = _examples(ds, train_targets, rec_dirs, hw)
+    examples, skipped = build_examples(ds, train_targets, rec_dirs, hw)
     if not examples:
         raise ValueError(f"diffusion: no training examples ({skipped} targets skipped) in scenes {splits['train']}")
     ctx.tracker.log_metrics({"train_examples": float(len(examples)), "skipped_targets": float(skipped)})

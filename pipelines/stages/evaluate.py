@@ -113,7 +113,7 @@ def evaluate_gen(ctx: StageContext) -> dict:
     from pipelines.generation.metrics import PROTOCOL, score_views
     from pipelines.generation.samples import enumerate_targets, stack
     from pipelines.generation.trajectory import predicted_future_targets
-    from pipelines.stages.diffusion import _examples, _save_grid, conditions_of, pad_tokens, split_scenes
+    from pipelines.stages.diffusion import build_examples, conditions_of, pad_tokens, save_grid, split_scenes
 
     cfg = EvaluateGenConfig(**ctx.cfg("stage.evaluate_gen"))
     if cfg.future_poses not in FUTURE_POSES:
@@ -134,7 +134,7 @@ def evaluate_gen(ctx: StageContext) -> dict:
         predicted, unparsed = predicted_future_targets(world, ds, distill_dirs, scenes, cfg.cameras, cfg.horizons_s,
                                                        cfg.frames)  # fmt: skip
         targets += predicted
-    held, skipped = _examples(ds, targets, rec_dirs, model.cfg.image_size)
+    held, skipped = build_examples(ds, targets, rec_dirs, model.cfg.image_size)
     if not held:
         raise ValueError(f"evaluate_gen: no held-out targets in val scenes {scenes} ({skipped} skipped)")
     c_L = conditions_of(world if model.cfg.high_level else None, ds, distill_dirs, [e.target.qa() for e in held],
@@ -151,7 +151,7 @@ def evaluate_gen(ctx: StageContext) -> dict:
         for j, ex in enumerate(chunk):
             scored.append((ex, rgb[j].cpu(), depth[j].cpu()))
             t = ex.target
-            _save_grid(ctx.out_dir / f"samples/{t.name}/{t.scene}_{t.frame:03d}_{t.camera}.png", ex, rgb[j])
+            save_grid(ctx.out_dir / f"samples/{t.name}/{t.scene}_{t.frame:03d}_{t.camera}.png", ex, rgb[j])
         ctx.progress(min(i + cfg.batch_size, len(held)), len(held), "generating")
     extractor = build_extractor(cfg.fd_extractor, cfg.fd_weights)
     metrics = score_views(scored, model.cfg.max_depth, extractor)

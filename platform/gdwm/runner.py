@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -9,6 +10,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -219,36 +221,52 @@ def run_pipeline(cfg: DictConfig, dry_run: bool = False, live: bool | None = Non
         # Nothing to run: no Ray, no tracking; a no-op re-run costs only the hash checks.
         console.print(f"all {len(rows)} stage outputs cached and verified; nothing to run")
         return RunSummary(results=_cached_results(rows, Cache(cfg.cache.uri)))
+    summary = RunSummary()
+    with driver_session(cfg) as sink:
+        try:
+            run_key = _run_key(pipe.name, order, rows)
+            parent = _parent_run(sink, cfg, pipe, run_key)
+            summary.parent_run_id = parent
+            progress = ProgressActor.remote()
+            env = RunEnv(sink=sink, parent_run_id=parent, progress=progress, **base_env)
+            with RunGuard(sink, parent):
+                _execute_dag(pipe, order, cfg, env, summary, progress, live)
+                n_run = sum(not r.cached for r in summary.results.values())
+                call(sink, "log_metrics", parent, {"stages_run": n_run})
+                report_evaluation(sink, parent, pipe, summary.results)
+                if summary.failed:
+                    raise StageFailed(next(iter(summary.failed)), {None: next(iter(summary.failed.values()))})
+        except StageFailed:
+            pass  # the parent run is FAILED by the guard; the caller reports from the summary
+    return summary
+
+
+@contextlib.contextmanager
+def driver_session(cfg: DictConfig) -> Iterator:
+    """Ray (started here unless already up) and the tracking sink of one driver invocation (``gdwm run``, ``gdwm
+    sweep``); runs that dead drivers left RUNNING are reconciled first. Whatever escapes (Ctrl-C, SIGTERM, an error)
+    ends the runs this driver owns KILLED now, not at the next reconcile."""
     started = init_ray(cfg)
     sink, close = open_tracking(cfg.tracking)
-    summary = RunSummary()
     try:
         call(sink, "reconcile")
-        run_key = _run_key(pipe.name, order, rows)
-        parent = _parent_run(sink, cfg, pipe, run_key)
-        summary.parent_run_id = parent
-        progress = ProgressActor.remote()
-        env = RunEnv(sink=sink, parent_run_id=parent, progress=progress, **base_env)
-        with RunGuard(sink, parent):
-            _execute_dag(pipe, order, cfg, env, summary, progress, live)
-            call(sink, "log_metrics", parent, {"stages_run": sum(not r.cached for r in summary.results.values())})
-            evaluated = evaluation_metrics(pipe, summary.results)
-            if evaluated:
-                call(sink, "log_metrics", parent, evaluated)
-            log_evaluation_tables(sink, parent, pipe, summary.results)
-            if summary.failed:
-                raise StageFailed(next(iter(summary.failed)), {None: next(iter(summary.failed.values()))})
-    except StageFailed:
-        pass  # the parent run is FAILED by the guard; the caller reports from the summary
+        yield sink
     except BaseException:
-        # Ctrl-C / SIGTERM: the stage runs this driver owns end KILLED now, not at the next reconcile.
         call(sink, "reconcile", AliveExcept(process_owner()))
         raise
     finally:
         close()
         if started:
             ray.shutdown()
-    return summary
+
+
+def report_evaluation(sink, run_id: str, pipe: Pipeline, results: dict[str, StageResult]) -> dict[str, float]:
+    """The evaluation stages' metrics and per-sample tables onto the trial's run; returns the metrics."""
+    metrics = evaluation_metrics(pipe, results)
+    if metrics:
+        call(sink, "log_metrics", run_id, metrics)
+    log_evaluation_tables(sink, run_id, pipe, results)
+    return metrics
 
 
 def evaluation_metrics(pipe: Pipeline, results: dict[str, StageResult]) -> dict[str, float]:

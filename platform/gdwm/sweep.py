@@ -31,16 +31,15 @@ from gdwm.runner import (
     _TERMINATED,
     PlanRow,
     _root_cause,
+    driver_session,
     ensure_data,
     env_settings,
-    evaluation_metrics,
-    init_ray,
-    log_evaluation_tables,
     plan_keys,
+    report_evaluation,
     subset,
 )
 from gdwm.term import console
-from gdwm.tracking import AliveExcept, RunGuard, call, open_tracking, process_owner
+from gdwm.tracking import RunGuard, call
 from gdwm.zoo.refs import ZooError
 from gdwm.zoo.registry import metric_tags, pin_references
 
@@ -176,10 +175,7 @@ def run_sweep(cfg: DictConfig, argv: list[str], dry_run: bool = False) -> SweepS
     if dry_run:
         print_sweep_plan(sweep, trials, _durations(cfg))
         return summary
-    started = init_ray(cfg)
-    sink, close = open_tracking(cfg.tracking)
-    try:
-        call(sink, "reconcile")
+    with driver_session(cfg) as sink:
         parent = _parent_run(sink, sweep, cfg)
         summary.parent_run_id = parent
         with RunGuard(sink, parent):
@@ -188,14 +184,6 @@ def run_sweep(cfg: DictConfig, argv: list[str], dry_run: bool = False) -> SweepS
                 "trials": len(trials), "trials_failed": len(summary.failed),
                 "stage_executions": summary.executions, "stage_executions_naive": summary.naive,
             })  # fmt: skip
-    except BaseException as e:
-        if not isinstance(e, Exception):  # Ctrl-C / SIGTERM: this driver's runs end KILLED now
-            call(sink, "reconcile", AliveExcept(process_owner()))
-        raise
-    finally:
-        close()
-        if started:
-            ray.shutdown()
     return summary
 
 
@@ -296,10 +284,7 @@ def _finish_trial(sink, sweep: SweepConfig, t: Trial, results: dict, summary: Sw
     ok = {n: r for n, r in results.items() if isinstance(r, StageResult)}
     call(sink, "set_tags", t.run_id, {f"gdwm.stage_run.{n}": r.run_id for n, r in ok.items() if r.run_id})
     call(sink, "set_tags", t.run_id, {f"gdwm.stage_key.{n}": r.key for n, r in ok.items()})
-    metrics = evaluation_metrics(t.pipe, ok)
-    if metrics:
-        call(sink, "log_metrics", t.run_id, metrics)
-    log_evaluation_tables(sink, t.run_id, t.pipe, ok)
+    metrics = report_evaluation(sink, t.run_id, t.pipe, ok)
     # the zoo versions this trial's stages registered carry its sweep, trial and key metrics
     lineage = {"gdwm.sweep": sweep.name, "gdwm.trial": t.run_id, "gdwm.row": t.label}
     lineage |= metric_tags({k: v for k, v in metrics.items() if not k.startswith("count/")})
