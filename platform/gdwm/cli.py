@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
 from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config
-from gdwm.term import console, err_console
+from gdwm.term import console, err_console, print_dataset_summary
 
 
 class CommandError(Exception):
@@ -38,49 +38,10 @@ class Command:
     """``--flags`` the command accepts; they reach ``run`` in its argument list."""
 
 
-def _fmt_bytes(n: int) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if n < 1024 or unit == "GiB":
-            return f"{n:.1f} {unit}" if unit != "B" else f"{n} B"
-        n /= 1024
-    return f"{n} B"
-
-
-def print_dataset_summary(s: dict) -> None:
-    console.print(
-        f"[bold]{s['name']}[/bold] at {s['root']}  (source {s['source']}, fingerprint {s['fingerprint'][:12]})"
-    )
-    t = Table(show_header=True, header_style="bold")
-    for col in ("scenes", "frames", "cameras", "weathers", "3D boxes", "2D boxes", "QA", "files", "on disk"):
-        t.add_column(col, justify="right")
-    t.add_row(
-        str(s["scenes"]),
-        str(s["frames"]),
-        str(len(s["cameras"])),
-        ",".join(s["weathers"]) or "-",
-        str(s["boxes3d"]),
-        str(s["boxes2d"]),
-        str(s["qa_total"]),
-        str(s["files"]),
-        _fmt_bytes(s["bytes"]),
-    )
-    console.print(t)
-    q = Table(title="QA per task family", show_header=True, header_style="bold")
-    for task in s["qa_per_task"]:
-        q.add_column(task, justify="right")
-    q.add_row(*(str(v) for v in s["qa_per_task"].values()))
-    console.print(q)
-    splits = ", ".join(f"{k} {v}" for k, v in s["qa_per_split"].items())
-    console.print(f"QA splits: {splits or '-'}")
-
-
 def _build_dataset(cfg: DictConfig, _args: list[str]) -> int:
-    root = Path(cfg.data.root)
-    t0 = time.perf_counter()
-    build = get_method(cfg.data.builder)
-    build(cfg.data, root=root, source=cfg.source, overwrite=cfg.overwrite)
-    console.print(f"built {cfg.data.name} in {time.perf_counter() - t0:.1f} s")
-    print_dataset_summary(get_method(cfg.data.summarizer)(root))
+    from gdwm.runner import build_dataset
+
+    build_dataset(cfg, source=cfg.source)
     return 0
 
 

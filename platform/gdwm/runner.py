@@ -34,7 +34,7 @@ from gdwm.executor import (
     upstream_keys,
 )
 from gdwm.progress import ProgressActor, render
-from gdwm.term import console
+from gdwm.term import console, print_dataset_summary
 from gdwm.tracking import AliveExcept, RunGuard, call, open_tracking, process_owner
 from gdwm.zoo.registry import pin_references
 
@@ -76,13 +76,22 @@ def read_dataset_meta(root: Path) -> dict:
     return json.loads(meta.read_text())
 
 
+def build_dataset(cfg: DictConfig, source: str | None) -> None:
+    """Build the dataset selected by ``data=`` (published atomically by its builder), then print its summary."""
+    root = Path(cfg.data.root)
+    t0 = time.perf_counter()
+    get_method(cfg.data.builder)(cfg.data, root=root, source=source, overwrite=cfg.overwrite)
+    console.print(f"built {cfg.data.name} in {time.perf_counter() - t0:.1f} s")
+    print_dataset_summary(get_method(cfg.data.summarizer)(root))
+
+
 def ensure_data(cfg: DictConfig) -> dict:
     """The dataset's meta; a dataset that needs no source (synthetic) is generated first if absent."""
     root = Path(cfg.data.root)
     if not (root / "dataset.json").is_file():
         if cfg.source is None and not cfg.data.needs_source:
             console.print(f"generating {cfg.data.name} at {root} ...")
-            get_method(cfg.data.builder)(cfg.data, root=root, source=None, overwrite=cfg.overwrite)
+            build_dataset(cfg, source=None)
         else:
             raise RunError(
                 f"dataset '{cfg.data.name}' not found at {root}: build it first "

@@ -53,3 +53,32 @@ def test_plugin_commands_are_listed_and_check_their_arguments(tmp_path):
     assert "gdwm generate: CommandError: args.scene is required" in r.stderr
     r = _gdwm("generate", f"workdir={tmp_path}", "args.sceen=x")
     assert r.returncode == 2 and "args.sceen" in r.stderr
+
+
+def test_data_synth_prints_the_dataset_summary(tmp_path):
+    import re
+
+    import pyarrow.parquet as pq
+
+    def cells(line: str) -> list[str]:  # a rich table row (header ┃, body │) as stripped cells
+        return [c.strip() for c in re.split("[│┃]", line)[1:-1]]
+
+    r = _gdwm("data", "synth", f"workdir={tmp_path}", "data.num_scenes=1", "data.width=48", "data.height=27")
+    assert r.returncode == 0, r.stderr
+    root = tmp_path / "data" / "synthetic_mini"
+    # the counts are recomputed from the files, not taken from the summarizer
+    qa = pq.read_table(root / "qa.parquet").column("task").to_pylist()
+    on_disk = sum(p.stat().st_size for p in root.rglob("*") if p.is_file() and p.name != "dataset.json")
+    lines = r.stdout.splitlines()
+    assert lines[0].startswith("built synthetic_mini in ")
+    header = next(i for i, x in enumerate(lines) if "scenes" in x and "on disk" in x)
+    row = cells(lines[header + 2])  # scenes, frames, cameras, weathers, boxes, QA, files, on disk
+    assert row[:4] == ["1", "10", "6", "clear,fog,night,rain"]
+    assert row[6] == str(len(qa))
+    assert abs(float(row[8].split()[0]) - on_disk / 2**20) < 0.15  # MiB, one decimal (dataset.json excluded)
+    tasks = next(i for i, x in enumerate(lines) if "QA per task family" in x)
+    names = cells(lines[tasks + 2])
+    counts = [int(c) for c in cells(lines[tasks + 4])]
+    assert names == ["rdp", "vg2d", "vg3d", "plan", "traj"]
+    assert dict(zip(names, counts, strict=True)) == {t: qa.count(t) for t in names}
+    assert sum(counts) == len(qa)

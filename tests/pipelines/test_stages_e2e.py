@@ -34,6 +34,7 @@ def test_gdwm_run_reconstruct_distill_tokenizer_lora_evaluate_qa(tmp_path):
     r = subprocess.run(args, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-4000:]
     assert "generating synthetic_mini" in r.stdout  # the data was absent and made first
+    assert "QA per task family" in r.stdout and "on disk" in r.stdout  # and its summary printed
     cache = Cache(tmp_path / "cache")
     rec, dis = cache.entries("reconstruct"), cache.entries("distill")
     assert sorted(m.scene for m in rec) == ["scene-0000", "scene-0001"] == sorted(m.scene for m in dis)
