@@ -294,6 +294,7 @@ def _groups_help() -> str:
         except ConfigError:
             opts = "?"
         lines.append(f"  {g:<10} {opts}")
+    lines.append("  stage/<name>, model/<name>: one group per stage and per model component (gdwm config show)")
     lines.append("common overrides: workdir=DIR (default ./gdwm-work), source=DIR, overwrite=true, data.KEY=VALUE")
     return "\n".join(lines)
 

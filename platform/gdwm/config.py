@@ -25,7 +25,7 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import InterpolationResolutionError, MissingMandatoryValue, OmegaConfBaseException
 
 PLUGIN_GROUP = "gdwm.plugins"
-MAIN_GROUPS = ("data", "pipeline", "cluster", "tracking")
+MAIN_GROUPS = ("experiment", "data", "pipeline", "cluster", "tracking", "sweep", "benchmark", "compare")
 
 
 class ConfigError(Exception):

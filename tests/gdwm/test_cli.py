@@ -15,6 +15,8 @@ def test_help_lists_commands_and_groups():
         assert text in r.stdout
     assert "data       gaussiandwm_release, nuscenes, synthetic_mini" in r.stdout
     assert "cluster    a100x16, local" in r.stdout
+    assert "experiment demo, gaussiandwm_pp" in r.stdout
+    assert "sweep      conference_ablation, dual_condition, journal_ablation" in r.stdout
 
 
 def test_subcommand_help():
