@@ -158,7 +158,7 @@ def print_plan(rows: list[PlanRow], env: RunEnv) -> None:
     for r in rows:
         res = env.resources.get(r.resources, {})
         cpus, gpus, n = res.get("num_cpus", 0), res.get("num_gpus", 0), res.get("num_workers", 1)
-        desc = f"{r.resources}: {cpus:g} CPU, {gpus:g} GPU, x{n}"
+        desc = f"{r.resources}: {cpus:g} CPU, {gpus:g} GPU, " + (f"x{n}" if n else "in-process")
         t.add_row(r.stage, r.scene or "-", r.status, r.key[:12], desc)
     console.print(t)
     counts = {s: sum(1 for r in rows if r.status == s) for s in ("cached", "to run")}

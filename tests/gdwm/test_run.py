@@ -193,6 +193,9 @@ def test_dry_run_prints_plan_without_running(first_run, tmp_path):
     assert status[("diffusion", "-")] == "to run" and status[("evaluate_gen", "-")] == "to run"
     assert status[("lora", "-")] == "cached"
     assert "9 cached, 2 to run" in r.stdout
+    res = {tuple(c.strip() for c in line.split("│")[1:6:4]) for line in r.stdout.splitlines() if line.count("│") >= 5}
+    assert ("distill", "gpu: 1 CPU, 0 GPU, x2") in res  # cluster=local: a pool of 2 scene actors
+    assert ("diffusion", "train: 1 CPU, 0 GPU, in-process") in res  # and Ray Train with num_workers=0
 
 
 def test_killed_scene_worker_is_retried_and_outputs_match(first_run, tmp_path):
