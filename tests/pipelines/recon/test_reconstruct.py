@@ -80,6 +80,21 @@ def test_aggregate_lidar_splits_moving_objects(synth_small):
         assert (np.abs(pts) <= np.asarray(size) / 2 + 0.21).all(), inst
 
 
+def test_scene_without_lidar_returns_is_named(synth_small, tmp_path):
+    import shutil
+
+    from pipelines.data.layout import LIDAR_SCHEMA, DataError, lidar_relpath, write_arrow
+
+    root = tmp_path / "data"
+    shutil.copytree(synth_small, root)
+    scene = GSQADataset(root).scene("scene-0001")
+    for f in scene.frames():  # every sweep present and readable, but with no returns
+        write_arrow(LIDAR_SCHEMA.empty_table(), root / lidar_relpath("scene-0001", f.idx))
+    assert GSQADataset(root).scene("scene-0001").frame(0).lidar().shape == (0, 4)
+    with pytest.raises(DataError, match=r"^scene-0001: no LiDAR points \(reconstruction is LiDAR-initialised\)$"):
+        aggregate_lidar(GSQADataset(root).scene("scene-0001"), split_moving=True, moving_speed=0.5)
+
+
 def test_nan_loss_names_the_view(synth_small):
     from pipelines.recon.init import load_views
 
