@@ -18,27 +18,17 @@ feature dim ``d_f``, ``L`` text length, ``P`` attributes, ``R`` Fourier rows.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from model_zoo.config import (  # torch-free, so config composition never loads torch
+    ATTRIBUTES,
+    FineAdapterConfig,
+    ProjectionConfig,
+)
 from model_zoo.registry import register
-
-ATTRIBUTES: tuple[str, ...] = ("x", "s", "r", "o", "f")
-
-
-@dataclass
-class ProjectionConfig:
-    fourier_features: int = 16
-    """Rows of the learnable Fourier map B (the position embedding has 2x this many dims)."""
-    fourier_scale: float = 0.05
-    """Init std of B, in 1/metres (0.05 -> periods of ~20 m)."""
-    mlp_ratio: int = 2
-    """Hidden width of the residual MLP aligner, times H."""
-    attributes: tuple[str, ...] = ATTRIBUTES
-    """Attributes that enter h~ (a subset of x, s, r, o, f; ablations drop "f")."""
 
 
 def fourier_embedding(xyz_BK3: torch.Tensor, b: nn.Linear) -> torch.Tensor:
@@ -98,16 +88,6 @@ class AttributeProjection(nn.Module):
         }
         h_BKH = sum(self.gates[p] * self.proj[a](inputs[a]) for p, a in enumerate(self.attributes))
         return h_BKH + self.mlp(self.norm(h_BKH))
-
-
-@dataclass
-class FineAdapterConfig:
-    name: str = "query_xattn"
-    """Fine adapter variant: similarity | query_xattn | identity."""
-    k_f: int = 16
-    """World tokens K_f per sample."""
-    heads: int = 4
-    """Attention heads of query_xattn (must divide H)."""
 
 
 def pooled_text(text_BLH: torch.Tensor, text_mask_BL: torch.Tensor) -> torch.Tensor:

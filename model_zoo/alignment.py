@@ -12,24 +12,11 @@ Legend: ``B`` batch, ``F`` world tokens (``K_f``), ``M`` image tokens, ``N`` any
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import nn
 
+from model_zoo.config import AlignmentConfig  # torch-free, so config composition never loads torch
 from model_zoo.registry import register
-
-
-@dataclass
-class AlignmentConfig:
-    name: str = "kl"
-    """Alignment variant: none | kl."""
-    weight: float = 0.1
-    """lambda_KL, the weight of L_KL in the understanding loss."""
-    warmup_steps: int = 100
-    """Linear warm-up alpha(t) = min(1, t / warmup_steps); 0 means alpha = 1 from the first step."""
-    eps: float = 1e-4
-    """epsilon added to both variances."""
 
 
 def token_stats(tokens_BNH: torch.Tensor, mask_BN: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

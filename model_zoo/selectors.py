@@ -25,6 +25,7 @@ from typing import ClassVar, Protocol
 import numpy as np
 import torch
 
+from model_zoo.config import SelectorConfig  # torch-free, so config composition never loads torch
 from model_zoo.registry import register
 
 logger = logging.getLogger("model_zoo.selectors")
@@ -39,51 +40,6 @@ _MIN_EXPONENT = -80.0
 _SAMPLE_MIN = 1 << 17
 _SAMPLE_SIZE = 1 << 16
 _warned_no_trajectory = False
-
-
-@dataclass
-class SelectorConfig:
-    """How a coarse selector picks ``K_c`` candidates; ``name`` picks the registered variant."""
-
-    name: str = "driving_aware"
-    """Registered selector variant: random, topk_uniform, topk_uniform_similarity, voxel_topk, driving_aware."""
-    k_c: int = 256
-    """Number of candidates K_c; missing candidates are padded with invalid tokens."""
-    voxel_size: float = 2.0
-    """Edge of the cubic voxel grid (metres, anchored at the ego origin) of VoxelTopK and uniform spatial sampling."""
-    uniform_fraction: float = 0.5
-    """topk_uniform(_similarity): share of K_c filled by uniform spatial sampling (the rest is ranked)."""
-    similarity_fraction: float = 0.25
-    """topk_uniform_similarity: share of K_c taken by top text-Gaussian similarity (out of the ranked share)."""
-    w_q: float = 1.0
-    """Weight w_q of the intrinsic quality Q_i in S_i."""
-    w_t: float = 1.0
-    """Weight w_t of the trajectory relevance T_i in S_i."""
-    sigma_traj: float = 5.0
-    """Spatial influence range sigma_traj (metres) of the trajectory prior T_i."""
-    seed: int = 0
-    """Seed of the random variants when the caller passes no generator."""
-    coverage_first: bool = True
-    """voxel_topk/driving_aware: on truncation keep VoxelTopK before TopK (False: top K_c of the union by score)."""
-
-    def __post_init__(self) -> None:
-        checks = [
-            (self.k_c >= 0, f"k_c must be >= 0, got {self.k_c}"),
-            (self.voxel_size > 0, f"voxel_size must be > 0 metres, got {self.voxel_size}"),
-            (0 <= self.uniform_fraction <= 1, f"uniform_fraction must be in [0, 1], got {self.uniform_fraction}"),
-            (
-                0 <= self.similarity_fraction <= 1,
-                f"similarity_fraction must be in [0, 1], got {self.similarity_fraction}",
-            ),
-            (self.w_q >= 0 and self.w_t >= 0 and self.w_q + self.w_t > 0, self._weights_msg()),
-            (self.sigma_traj > 0, f"sigma_traj must be > 0 metres, got {self.sigma_traj}"),
-        ]
-        for ok, msg in checks:
-            if not ok:
-                raise ValueError(f"SelectorConfig '{self.name}': {msg}")
-
-    def _weights_msg(self) -> str:
-        return f"w_q and w_t must be >= 0 with w_q + w_t > 0, got w_q={self.w_q}, w_t={self.w_t}"
 
 
 @dataclass

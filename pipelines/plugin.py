@@ -6,11 +6,15 @@ from hydra.core.config_store import ConfigStore
 
 
 def register(cs: ConfigStore) -> None:
-    from model_zoo.adapter import FineAdapterConfig, ProjectionConfig
-    from model_zoo.alignment import AlignmentConfig
-    from model_zoo.diffusion.rgbd_dual import DiffusionConfig
-    from model_zoo.llm.qwen3_vl import LLMConfig
-    from model_zoo.selectors import SelectorConfig
+    # Config modules only: composing a config must not import torch, transformers or diffusers.
+    from model_zoo.config import (
+        AlignmentConfig,
+        DiffusionConfig,
+        FineAdapterConfig,
+        LLMConfig,
+        ProjectionConfig,
+        SelectorConfig,
+    )
     from pipelines.data.gaussiandwm import ReleaseConfig
     from pipelines.data.nuscenes import NuScenesConfig
     from pipelines.data.synth.config import SynthConfig

@@ -19,7 +19,7 @@ Legend: B batch, H x W image pixels (``cfg.image_size``), h x w latent pixels, L
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from model_zoo.config import DiffusionConfig  # torch-free, so config composition never loads torch
 from model_zoo.diffusion.vpred import add_noise, alphas_sigmas, depth_to_rgb, rgb_to_depth, v_target
 from model_zoo.registry import register
 
@@ -35,42 +36,6 @@ EXPECTED_LAYOUT = (
 )
 # Stable Diffusion 2's v-prediction noise schedule: pretrained UNets loaded from `path` were trained on it.
 _SCHEDULE = {"beta_schedule": "scaled_linear", "beta_start": 0.00085, "beta_end": 0.012, "clip_sample": False}
-
-
-@dataclass
-class DiffusionConfig:
-    name: str = "rgbd_dual"
-    """Registered variant name."""
-    path: str | None = None
-    """Local directory with ``unet/`` and ``vae/`` subfolders (diffusers save_pretrained layout); never downloaded."""
-    tiny: bool = True
-    """Build tiny random UNet/VAE configs of the same classes (CPU, seconds); ``path`` is ignored."""
-    image_size: tuple[int, int] = (48, 80)
-    """(H, W) the model works at; inputs are resized by the caller."""
-    latent_channels: int = 4
-    """L: channels of one VAE latent (the target d has 2L)."""
-    unet_channels: tuple[int, ...] = (32, 64)
-    """Tiny UNet ``block_out_channels`` (one down/up block each; all but the first use cross-attention)."""
-    vae_channels: tuple[int, ...] = (16, 32)
-    """Tiny VAE ``block_out_channels`` (downsample factor 2**(len-1))."""
-    cross_attention_dim: int = 64
-    """Width of C_L (the LLM hidden size); a loaded UNet with another width gets a learned projection."""
-    low_level: bool = True
-    """Ablation switch: C_I, C_D enter the UNet input (False: zeros in their channels and in the mask)."""
-    high_level: bool = True
-    """Ablation switch: C_L enters through cross-attention (False: the learned null token always)."""
-    cond_dropout: float = 0.1
-    """Probability of replacing C_L by the null condition in training (classifier-free guidance)."""
-    guidance_scale: float = 2.0
-    """CFG scale at sampling (1 = off)."""
-    num_train_timesteps: int = 1000
-    """Diffusion steps of the training schedule."""
-    sample_steps: int = 20
-    """DDIM steps at sampling."""
-    max_depth: float = 80.0
-    """Depth in metres mapped to +1 in pseudo-RGB (farther is clamped)."""
-    seed: int = 0
-    """Seed of the tiny flavor's random initialisation (and of a fresh null token)."""
 
 
 def _tiny_unet(cfg: DiffusionConfig, latent_hw: tuple[int, int]) -> Any:

@@ -21,13 +21,14 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from model_zoo.config import LLMConfig  # torch-free, so config composition never loads torch
 from model_zoo.encoders.qwen3_vl_vision import QwenVisionConfig, _processor, tiny_vision_config
 from model_zoo.llm.text import (
     GAUSS_PAD,
@@ -47,43 +48,6 @@ EXPECTED_FILES = (
     "config.json, model.safetensors (or model.safetensors.index.json with its shards), tokenizer.json (or vocab.json "
     "and merges.txt); preprocessor_config.json optional"
 )
-
-
-@dataclass
-class LLMConfig:
-    name: str = "qwen3_vl"
-    """Registered variant name."""
-    path: str | None = None
-    """Local checkpoint directory for full runs (config.json, safetensors, tokenizer files); never downloaded."""
-    tiny: bool = True
-    """Build a tiny random model of the same classes and a BPE tokenizer trained on the corpus (``path`` ignored)."""
-    hidden_size: int = 64
-    """Tiny text model width H (= the vision tower's ``out_hidden_size``)."""
-    num_layers: int = 2
-    """Tiny text model decoder layers."""
-    num_heads: int = 4
-    """Tiny text model attention heads."""
-    num_kv_heads: int = 2
-    """Tiny text model key/value heads (grouped-query attention)."""
-    intermediate_size: int = 128
-    """Tiny text model MLP width."""
-    vocab_size: int = 600
-    """Target BPE vocabulary of the tiny tokenizer, special tokens included (a small corpus may give fewer)."""
-    max_length: int = 384
-    """Sequence limit of one sample (prompt + answer) in tokens."""
-    image_max_pixels: int = 16384
-    """Image processor's upper bound on pixels per image (tiny: small images, few tokens)."""
-    dtype: str = "float32"
-    """Parameter dtype (``bfloat16`` on CUDA)."""
-    seed: int = 0
-    """Seed of the tiny flavor's random initialisation."""
-    pretrain_steps: int = 0
-    """Tiny flavor: full-parameter next-token steps on the corpus text (each string a document, no chat template)
-    after the random init, standing in for a pretrained checkpoint: it knows the domain's words, not the tasks."""
-    pretrain_lr: float = 3e-3
-    """Adam learning rate of that warm-up."""
-    pretrain_batch_size: int = 32
-    """Documents per warm-up step."""
 
 
 def _check_dir(path: Path) -> None:

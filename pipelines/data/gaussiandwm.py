@@ -33,7 +33,6 @@ import numpy as np
 
 from pipelines.data.config import DatasetConfig
 from pipelines.data.gaussiandwm_poses import read_pose_file
-from pipelines.data.gaussiandwm_pth import concat, read_release_gaussians
 from pipelines.data.gaussiandwm_qa import DEFAULT_TASK_MAP, ReleaseRecord, map_task, read_qa_file
 from pipelines.data.layout import DataError, DatasetWriter, flat_pose, gaussians_relpath, transform_gaussians
 from pipelines.data.scene_splits import split_scenes
@@ -104,6 +103,8 @@ def _write_scene(
     w: DatasetWriter, src: Path, cfg: ReleaseConfig, key: int | str, frames: dict[int, _Frame], colors: Counter
 ) -> None:
     """One scene's rows and Gaussian files; ``frames`` maps our frame index to the release frame."""
+    from pipelines.data.gaussiandwm_pth import concat, read_release_gaussians  # torch: not at config composition
+
     sid = scene_id(key)
     poses = _scene_poses(src, cfg, key) if cfg.pose_dir else None
     # The release has no timestamps: frame rate and timestamps are null rather than invented.

@@ -164,6 +164,38 @@ class GdwmConfig:
     """Execution policy."""
 
 
+@dataclass
+class SweepRow:
+    """One row of the table."""
+
+    label: str = MISSING
+    """Row label in the table (unique in the sweep)."""
+    factors: dict[str, str] = field(default_factory=dict)
+    """Factor column -> the value this row shows (e.g. ``Coarse Selection: Driving-Aware``)."""
+    overrides: list[str] = field(default_factory=list)
+    """Hydra overrides the row means."""
+
+
+@dataclass
+class SweepConfig:
+    """An ablation table or grid (group ``sweep/``)."""
+
+    name: str = MISSING
+    """Sweep name: the MLflow parent run and ``workdir/reports/<name>``."""
+    layout: str = "nuinteract"
+    """Table layout of the report (a ``conf/compare/`` option)."""
+    targets: list[str] = field(default_factory=list)
+    """Stages the reported metrics need; only they and their ancestors run (empty = the whole pipeline)."""
+    overrides: list[str] = field(default_factory=list)
+    """Overrides of every trial (the command line's come after them)."""
+    rows: list[SweepRow] = field(default_factory=list)
+    """Explicit rows; none = one row of the base config."""
+    grid: dict[str, list[str]] = field(default_factory=dict)
+    """Override key -> values; their cartesian product is crossed with every row."""
+    baseline: str | None = None
+    """Row label the report's deltas are against (default: the first row)."""
+
+
 def _register_platform(cs: ConfigStore) -> None:
     cs.store(name="gdwm_schema", node=GdwmConfig)
     cs.store(group="schema/cluster", name="cluster", node=ClusterConfig)
@@ -174,8 +206,6 @@ def _register_platform(cs: ConfigStore) -> None:
     from gdwm.compare.layout import CompareArgs, LayoutConfig
 
     cs.store(group="schema/compare", name="layout", node=LayoutConfig)
-    from gdwm.sweep import SweepConfig
-
     cs.store(group="schema/sweep", name="sweep", node=SweepConfig)
     from gdwm.regress import BenchmarkConfig
 

@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import ray
-from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
-from gdwm.config import ConfigError, load_config
+from gdwm.config import ConfigError, SweepConfig, SweepRow, load_config
 from gdwm.dag import DagError, Pipeline, load_pipeline
 from gdwm.executor import RunEnv, StageFailed, StageResult, run_scene_stage, run_stage, task_options
 from gdwm.runner import (
@@ -44,38 +44,6 @@ from gdwm.zoo.refs import ZooError
 from gdwm.zoo.registry import metric_tags, pin_references
 
 TRIAL_KEY = "gdwm.trial_key"
-
-
-@dataclass
-class SweepRow:
-    """One row of the table."""
-
-    label: str = MISSING
-    """Row label in the table (unique in the sweep)."""
-    factors: dict[str, str] = field(default_factory=dict)
-    """Factor column -> the value this row shows (e.g. ``Coarse Selection: Driving-Aware``)."""
-    overrides: list[str] = field(default_factory=list)
-    """Hydra overrides the row means."""
-
-
-@dataclass
-class SweepConfig:
-    """An ablation table or grid (group ``sweep/``)."""
-
-    name: str = MISSING
-    """Sweep name: the MLflow parent run and ``workdir/reports/<name>``."""
-    layout: str = "nuinteract"
-    """Table layout of the report (a ``conf/compare/`` option)."""
-    targets: list[str] = field(default_factory=list)
-    """Stages the reported metrics need; only they and their ancestors run (empty = the whole pipeline)."""
-    overrides: list[str] = field(default_factory=list)
-    """Overrides of every trial (the command line's come after them)."""
-    rows: list[SweepRow] = field(default_factory=list)
-    """Explicit rows; none = one row of the base config."""
-    grid: dict[str, list[str]] = field(default_factory=dict)
-    """Override key -> values; their cartesian product is crossed with every row."""
-    baseline: str | None = None
-    """Row label the report's deltas are against (default: the first row)."""
 
 
 class SweepError(Exception):

@@ -106,3 +106,14 @@ def test_config_show_prints_resolved_yaml(tmp_path):
     assert "num_scenes: 3" in r.stdout
     assert f"root: {tmp_path}/data/synthetic_mini" in r.stdout
     assert "${" not in r.stdout
+
+
+def test_composing_a_config_imports_no_heavy_library():
+    # Every gdwm command composes first: torch, transformers, diffusers, mlflow and ray load only when used.
+    code = (
+        "import sys; from gdwm.config import load_config; load_config(['experiment=demo']); "
+        "print(sorted(m for m in ('torch', 'transformers', 'diffusers', 'mlflow', 'ray') if m in sys.modules))"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[]"

@@ -1,0 +1,165 @@
+"""The component configs of ``model_zoo``: plain dataclasses, importable without torch.
+
+Each is documented with (and used by) its component: ``selectors``, ``alignment``, ``adapter``, ``llm.qwen3_vl``,
+``diffusion.rgbd_dual`` re-export theirs. They live here so that composing and validating a config (every ``gdwm``
+command, before anything runs) never imports torch, transformers or diffusers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+ATTRIBUTES: tuple[str, ...] = ("x", "s", "r", "o", "f")
+"""Gaussian attributes of the attribute-aware projection: position, scale, rotation, opacity, feature."""
+
+
+@dataclass
+class SelectorConfig:
+    """How a coarse selector picks ``K_c`` candidates; ``name`` picks the registered variant."""
+
+    name: str = "driving_aware"
+    """Registered selector variant: random, topk_uniform, topk_uniform_similarity, voxel_topk, driving_aware."""
+    k_c: int = 256
+    """Number of candidates K_c; missing candidates are padded with invalid tokens."""
+    voxel_size: float = 2.0
+    """Edge of the cubic voxel grid (metres, anchored at the ego origin) of VoxelTopK and uniform spatial sampling."""
+    uniform_fraction: float = 0.5
+    """topk_uniform(_similarity): share of K_c filled by uniform spatial sampling (the rest is ranked)."""
+    similarity_fraction: float = 0.25
+    """topk_uniform_similarity: share of K_c taken by top text-Gaussian similarity (out of the ranked share)."""
+    w_q: float = 1.0
+    """Weight w_q of the intrinsic quality Q_i in S_i."""
+    w_t: float = 1.0
+    """Weight w_t of the trajectory relevance T_i in S_i."""
+    sigma_traj: float = 5.0
+    """Spatial influence range sigma_traj (metres) of the trajectory prior T_i."""
+    seed: int = 0
+    """Seed of the random variants when the caller passes no generator."""
+    coverage_first: bool = True
+    """voxel_topk/driving_aware: on truncation keep VoxelTopK before TopK (False: top K_c of the union by score)."""
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.k_c >= 0, f"k_c must be >= 0, got {self.k_c}"),
+            (self.voxel_size > 0, f"voxel_size must be > 0 metres, got {self.voxel_size}"),
+            (0 <= self.uniform_fraction <= 1, f"uniform_fraction must be in [0, 1], got {self.uniform_fraction}"),
+            (
+                0 <= self.similarity_fraction <= 1,
+                f"similarity_fraction must be in [0, 1], got {self.similarity_fraction}",
+            ),
+            (self.w_q >= 0 and self.w_t >= 0 and self.w_q + self.w_t > 0, self._weights_msg()),
+            (self.sigma_traj > 0, f"sigma_traj must be > 0 metres, got {self.sigma_traj}"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise ValueError(f"SelectorConfig '{self.name}': {msg}")
+
+    def _weights_msg(self) -> str:
+        return f"w_q and w_t must be >= 0 with w_q + w_t > 0, got w_q={self.w_q}, w_t={self.w_t}"
+
+
+@dataclass
+class AlignmentConfig:
+    name: str = "kl"
+    """Alignment variant: none | kl."""
+    weight: float = 0.1
+    """lambda_KL, the weight of L_KL in the understanding loss."""
+    warmup_steps: int = 100
+    """Linear warm-up alpha(t) = min(1, t / warmup_steps); 0 means alpha = 1 from the first step."""
+    eps: float = 1e-4
+    """epsilon added to both variances."""
+
+
+@dataclass
+class ProjectionConfig:
+    fourier_features: int = 16
+    """Rows of the learnable Fourier map B (the position embedding has 2x this many dims)."""
+    fourier_scale: float = 0.05
+    """Init std of B, in 1/metres (0.05 -> periods of ~20 m)."""
+    mlp_ratio: int = 2
+    """Hidden width of the residual MLP aligner, times H."""
+    attributes: tuple[str, ...] = ATTRIBUTES
+    """Attributes that enter h~ (a subset of x, s, r, o, f; ablations drop "f")."""
+
+
+@dataclass
+class FineAdapterConfig:
+    name: str = "query_xattn"
+    """Fine adapter variant: similarity | query_xattn | identity."""
+    k_f: int = 16
+    """World tokens K_f per sample."""
+    heads: int = 4
+    """Attention heads of query_xattn (must divide H)."""
+
+
+@dataclass
+class LLMConfig:
+    name: str = "qwen3_vl"
+    """Registered variant name."""
+    path: str | None = None
+    """Local checkpoint directory for full runs (config.json, safetensors, tokenizer files); never downloaded."""
+    tiny: bool = True
+    """Build a tiny random model of the same classes and a BPE tokenizer trained on the corpus (``path`` ignored)."""
+    hidden_size: int = 64
+    """Tiny text model width H (= the vision tower's ``out_hidden_size``)."""
+    num_layers: int = 2
+    """Tiny text model decoder layers."""
+    num_heads: int = 4
+    """Tiny text model attention heads."""
+    num_kv_heads: int = 2
+    """Tiny text model key/value heads (grouped-query attention)."""
+    intermediate_size: int = 128
+    """Tiny text model MLP width."""
+    vocab_size: int = 600
+    """Target BPE vocabulary of the tiny tokenizer, special tokens included (a small corpus may give fewer)."""
+    max_length: int = 384
+    """Sequence limit of one sample (prompt + answer) in tokens."""
+    image_max_pixels: int = 16384
+    """Image processor's upper bound on pixels per image (tiny: small images, few tokens)."""
+    dtype: str = "float32"
+    """Parameter dtype (``bfloat16`` on CUDA)."""
+    seed: int = 0
+    """Seed of the tiny flavor's random initialisation."""
+    pretrain_steps: int = 0
+    """Tiny flavor: full-parameter next-token steps on the corpus text (each string a document, no chat template)
+    after the random init, standing in for a pretrained checkpoint: it knows the domain's words, not the tasks."""
+    pretrain_lr: float = 3e-3
+    """Adam learning rate of that warm-up."""
+    pretrain_batch_size: int = 32
+    """Documents per warm-up step."""
+
+
+@dataclass
+class DiffusionConfig:
+    name: str = "rgbd_dual"
+    """Registered variant name."""
+    path: str | None = None
+    """Local directory with ``unet/`` and ``vae/`` subfolders (diffusers save_pretrained layout); never downloaded."""
+    tiny: bool = True
+    """Build tiny random UNet/VAE configs of the same classes (CPU, seconds); ``path`` is ignored."""
+    image_size: tuple[int, int] = (48, 80)
+    """(H, W) the model works at; inputs are resized by the caller."""
+    latent_channels: int = 4
+    """L: channels of one VAE latent (the target d has 2L)."""
+    unet_channels: tuple[int, ...] = (32, 64)
+    """Tiny UNet ``block_out_channels`` (one down/up block each; all but the first use cross-attention)."""
+    vae_channels: tuple[int, ...] = (16, 32)
+    """Tiny VAE ``block_out_channels`` (downsample factor 2**(len-1))."""
+    cross_attention_dim: int = 64
+    """Width of C_L (the LLM hidden size); a loaded UNet with another width gets a learned projection."""
+    low_level: bool = True
+    """Ablation switch: C_I, C_D enter the UNet input (False: zeros in their channels and in the mask)."""
+    high_level: bool = True
+    """Ablation switch: C_L enters through cross-attention (False: the learned null token always)."""
+    cond_dropout: float = 0.1
+    """Probability of replacing C_L by the null condition in training (classifier-free guidance)."""
+    guidance_scale: float = 2.0
+    """CFG scale at sampling (1 = off)."""
+    num_train_timesteps: int = 1000
+    """Diffusion steps of the training schedule."""
+    sample_steps: int = 20
+    """DDIM steps at sampling."""
+    max_depth: float = 80.0
+    """Depth in metres mapped to +1 in pseudo-RGB (farther is clamped)."""
+    seed: int = 0
+    """Seed of the tiny flavor's random initialisation (and of a fresh null token)."""
