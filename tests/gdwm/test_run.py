@@ -241,7 +241,7 @@ def test_failing_stage_exits_1_naming_it_and_keeps_the_cache(first_run, tmp_path
     assert toy.executions() == [("evaluate_gen", "-")]
 
 
-@pytest.mark.parametrize("policy", ["fail", "skip"])
+@pytest.mark.parametrize("policy", ["fail", pytest.param("skip", marks=pytest.mark.slow)])
 def test_scene_error_policy(first_run, tmp_path, policy):
     toy = _copy(first_run, tmp_path)
     r = toy.run(
@@ -321,6 +321,7 @@ def test_sigkilled_driver_resumes_without_duplicates(tmp_path):
     assert sorted({m.value for m in client.get_metric_history(lora.info.run_id, "start")}) == [0.0, 2.0]
 
 
+@pytest.mark.slow  # make test-all; tests/gdwm/test_tracking.py checks the SIGTERM handler on one run in seconds
 def test_sigterm_ends_every_run_killed(tmp_path):
     toy = Toy(tmp_path)
     proc = _start_blocked(toy, "tokenizer")

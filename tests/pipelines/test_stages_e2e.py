@@ -111,6 +111,7 @@ def _gdwm(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "gdwm", *args], capture_output=True, text=True, timeout=timeout)
 
 
+@pytest.mark.slow  # make test-all; tests/pipelines/generation and tests/model_zoo/test_diffusion cover the parts
 def test_diffusion_stage_then_generate_and_edit(tmp_path):
     import json
 
