@@ -16,10 +16,8 @@ $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	@# Without CUDA, pin the CPU build first: an unpinned torch pulls a multi-GB CUDA build.
-	@# --no-compile: Python compiles what is imported on first use; compiling all of site-packages up front
-	@# (torch, ray, mlflow, ...) costs more than a minute of setup on 2 cores.
-	if ! command -v nvidia-smi >/dev/null 2>&1; then $(PY) -m pip install --quiet --no-compile torch==2.13.0; fi
-	$(PY) -m pip install --quiet --no-compile -e '.[dev]'
+	if ! command -v nvidia-smi >/dev/null 2>&1; then $(PY) -m pip install --quiet torch==2.13.0; fi
+	$(PY) -m pip install --quiet -e '.[dev]'
 	@# The report's browser test drives the system chromium (no browser download); never fails the setup.
 	command -v chromium >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && { apt-get install -y -qq --no-install-recommends chromium || { apt-get update -qq && apt-get install -y -qq --no-install-recommends chromium; }; } || echo "chromium not installed: the browser test will skip"; }
 	touch $(STAMP)
