@@ -39,7 +39,7 @@ class Command:
 
 
 def _build_dataset(cfg: DictConfig, _args: list[str]) -> int:
-    from gdwm.runner import build_dataset
+    from gdwm.datasets import build_dataset
 
     build_dataset(cfg, source=cfg.source)
     return 0

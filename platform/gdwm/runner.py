@@ -15,13 +15,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import ray
-from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 from rich.live import Live
 from rich.table import Table
 
 from gdwm.cache import Cache
 from gdwm.dag import Pipeline, load_pipeline
+from gdwm.datasets import build_dataset
 from gdwm.executor import (
     RunEnv,
     StageFailed,
@@ -34,7 +34,7 @@ from gdwm.executor import (
     upstream_keys,
 )
 from gdwm.progress import ProgressActor, render
-from gdwm.term import console, print_dataset_summary
+from gdwm.term import console
 from gdwm.tracking import AliveExcept, RunGuard, call, open_tracking, process_owner
 from gdwm.zoo.registry import pin_references
 
@@ -74,15 +74,6 @@ def read_dataset_meta(root: Path) -> dict:
     if not meta.is_file():
         raise RunError(f"dataset at {root} is absent or incomplete (no dataset.json)")
     return json.loads(meta.read_text())
-
-
-def build_dataset(cfg: DictConfig, source: str | None) -> None:
-    """Build the dataset selected by ``data=`` (published atomically by its builder), then print its summary."""
-    root = Path(cfg.data.root)
-    t0 = time.perf_counter()
-    get_method(cfg.data.builder)(cfg.data, root=root, source=source, overwrite=cfg.overwrite)
-    console.print(f"built {cfg.data.name} in {time.perf_counter() - t0:.1f} s")
-    print_dataset_summary(get_method(cfg.data.summarizer)(root))
 
 
 def ensure_data(cfg: DictConfig) -> dict:
