@@ -34,7 +34,7 @@ class SelectorConfig:
     sigma_traj: float = 5.0
     """Spatial influence range sigma_traj (metres) of the trajectory prior T_i."""
     seed: int = 0
-    """Seed of the random variants when the caller passes no generator."""
+    """Seed of the random variants when the caller passes no generator (gdwm's YAML sets it to the trial seed)."""
     coverage_first: bool = True
     """voxel_topk/driving_aware: on truncation keep VoxelTopK before TopK (False: top K_c of the union by score)."""
 
@@ -119,7 +119,7 @@ class LLMConfig:
     dtype: str = "float32"
     """Parameter dtype (``bfloat16`` on CUDA)."""
     seed: int = 0
-    """Seed of the tiny flavor's random initialisation."""
+    """Seed of the tiny flavor's random initialisation (gdwm's YAML sets it to the trial seed)."""
     pretrain_steps: int = 0
     """Tiny flavor: full-parameter next-token steps on the corpus text (each string a document, no chat template)
     after the random init, standing in for a pretrained checkpoint: it knows the domain's words, not the tasks."""

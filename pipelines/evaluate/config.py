@@ -47,5 +47,3 @@ class EvaluateGenConfig:
     ``fd_weights``)."""
     fd_weights: str | None = None
     """Local TorchScript file of the standard Inception weights (``fd_extractor: inception``); never downloaded."""
-    seed: int = 0
-    """Seed of the sampling noise."""

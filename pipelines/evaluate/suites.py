@@ -183,3 +183,9 @@ def score_predictions(rows: Iterable[dict] | Any, mapping: SuiteMapping | None =
     )
     aggregate("omnidrive/avg", ("omnidrive/bleu", "omnidrive/cider", "omnidrive/rouge_l"), lambda *v: sum(v) / len(v))
     return out
+
+
+def score_table(table: Any) -> dict[str, float]:
+    """The metrics of a ``predictions.parquet`` table (or any subset of its rows, repeats allowed): what
+    ``evaluate_qa`` logs, recomputed on bootstrap resamples by ``gdwm compare`` and ``gdwm regress``."""
+    return score_predictions(table).metrics

@@ -44,5 +44,3 @@ class DiffusionStageConfig:
     """Weather-editing targets (pairs from the dataset's weather variants)."""
     log_every: int = 10
     """Log the training loss every N steps."""
-    seed: int = 0
-    """Seed of batches, noise and initialisation."""

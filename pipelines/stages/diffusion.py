@@ -144,8 +144,9 @@ def pad_tokens(tokens: list[torch.Tensor | None]) -> tuple[torch.Tensor | None, 
 def train_loop(s: TrainSession) -> None:
     c = s.config
     cfg = DiffusionStageConfig(**c["train"])
+    seed = c["seed"]  # the trial seed: batches, noise, CFG dropout
     data = torch.load(c["data"], map_location="cpu", weights_only=True)
-    torch.manual_seed(cfg.seed)
+    torch.manual_seed(seed)
     model = RGBDDual.from_pretrained(c["init_dir"])
     device = ray.train.torch.get_device() if s.world_size > 1 or torch.cuda.is_available() else torch.device("cpu")
     model.to(device)
@@ -161,7 +162,7 @@ def train_loop(s: TrainSession) -> None:
     for step in range(start, cfg.steps):
         for group in opt.param_groups:
             group["lr"] = warmup_cosine_lr(step, cfg.lr, cfg.warmup_steps, cfg.steps)
-        gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
+        gen = torch.Generator().manual_seed(seed * 1_000_003 + step)
         idx = torch.randint(n, (cfg.batch_size * s.world_size,), generator=gen)
         idx = idx[s.rank * cfg.batch_size : (s.rank + 1) * cfg.batch_size]
         b = {k: v[idx].to(device) for k, v in data.items() if k not in ("c_L", "c_L_mask")}
@@ -207,10 +208,11 @@ def save_grid(path: Path, ex: GenExample, rgb: torch.Tensor) -> None:
 
 @stage(
     "diffusion",
-    "2",
+    "3",
     config=[MODEL, "stage.diffusion"],
     upstream=["diffusion_vae", "reconstruct", "lora", "distill"],
     resources="train",
+    seeded=True,
 )
 def diffusion(ctx: StageContext) -> dict:
     mcfg = diffusion_config(ctx)
@@ -243,7 +245,8 @@ def diffusion(ctx: StageContext) -> dict:
                             cond_dropout=mcfg.cond_dropout, guidance_scale=mcfg.guidance_scale,
                             sample_steps=mcfg.sample_steps)  # fmt: skip
         model.save(init)
-    result = ctx.train(train_loop, {"init_dir": str(init), "data": str(data_path), "train": asdict(cfg)})
+    loop_cfg = {"init_dir": str(init), "data": str(data_path), "train": asdict(cfg), "seed": ctx.seed}
+    result = ctx.train(train_loop, loop_cfg)
     model = RGBDDual.from_pretrained(init)
     model.load_state_dict(result.state["model"], strict=False)
     model.eval()

@@ -25,6 +25,7 @@ from ray.util import ActorPool
 from gdwm.stage import StageContext, stage
 from pipelines.data.reader import GSQADataset
 from pipelines.evaluate.config import FUTURE_POSES, EvaluateGenConfig, EvaluateQAConfig
+from pipelines.evaluate.suites import score_predictions, score_table
 from pipelines.understanding.data import FrameStore, QASample, load_samples
 from pipelines.understanding.infer import PREDICTION_SCHEMA, predict, write_predictions
 from pipelines.understanding.model import load_world_model
@@ -72,10 +73,8 @@ def answer_all(ctx: StageContext, model_dir: Path, samples: list[QASample], cfg:
 
 
 @stage("evaluate_qa", "1", config=["stage.evaluate_qa"], upstream=["lora", "distill"], resources="eval",
-       evaluation=True)  # fmt: skip
+       evaluation=True, samples="predictions.parquet", score=score_table)  # fmt: skip
 def evaluate_qa(ctx: StageContext) -> dict:
-    from pipelines.evaluate.suites import score_predictions
-
     cfg = EvaluateQAConfig(**ctx.cfg("stage.evaluate_qa"))
     model_dir = ctx.upstream["lora"].path
     meta = json.loads((model_dir / "world.json").read_text())
@@ -105,8 +104,8 @@ def evaluate_qa(ctx: StageContext) -> dict:
     return metrics
 
 
-@stage("evaluate_gen", "1", config=["stage.evaluate_gen"], upstream=["diffusion", "reconstruct", "lora", "distill"],
-       resources="eval", evaluation=True)  # fmt: skip
+@stage("evaluate_gen", "2", config=["stage.evaluate_gen"], upstream=["diffusion", "reconstruct", "lora", "distill"],
+       resources="eval", evaluation=True, seeded=True)  # fmt: skip
 def evaluate_gen(ctx: StageContext) -> dict:
     from model_zoo.diffusion.rgbd_dual import RGBDDual
     from pipelines.generation.frechet import build_extractor
@@ -144,7 +143,7 @@ def evaluate_gen(ctx: StageContext) -> dict:
         chunk = held[i : i + cfg.batch_size]
         b = stack(chunk)
         tok, m = pad_tokens(c_L[i : i + cfg.batch_size])
-        gen = torch.Generator().manual_seed(cfg.seed + i)
+        gen = torch.Generator().manual_seed(ctx.seed * 1_000_003 + i)  # the trial seed's sampling noise
         with torch.no_grad():
             rgb, depth = model.sample(b["ref_rgb"], b["ref_depth"], b["cond_rgb"], b["cond_depth"], b["cond_mask"],
                                       tok, m, generator=gen)  # fmt: skip

@@ -17,7 +17,8 @@ from pipelines.understanding.stage_common import MODEL_CONFIG, components, finis
 MODES = ("train", "zero_shot")
 
 
-@stage("lora", "1", config=[*MODEL_CONFIG, "stage.lora"], upstream=["tokenizer", "distill"], resources="train")
+@stage("lora", "2", config=[*MODEL_CONFIG, "stage.lora"], upstream=["tokenizer", "distill"], resources="train",
+       seeded=True)  # fmt: skip
 def lora(ctx: StageContext) -> dict:
     cfg = LoraStageConfig(**ctx.cfg("stage.lora"))
     if cfg.mode not in MODES:

@@ -19,7 +19,8 @@ from pipelines.understanding.model import WORLD_FILE, build_world_model, load_wo
 from pipelines.understanding.stage_common import MODEL_CONFIG, components, finish, log_skipped, run_training
 
 
-@stage("tokenizer", "1", config=[*MODEL_CONFIG, "stage.tokenizer"], upstream=["distill"], resources="train")
+@stage("tokenizer", "2", config=[*MODEL_CONFIG, "stage.tokenizer"], upstream=["distill"], resources="train",
+       seeded=True)  # fmt: skip
 def tokenizer(ctx: StageContext) -> dict:
     comp = components(ctx)
     cfg = TokenizerStageConfig(**ctx.cfg("stage.tokenizer"))
@@ -36,7 +37,7 @@ def tokenizer(ctx: StageContext) -> dict:
             llm = registry.build("llm", comp.llm.name, comp.llm, corpus=training_corpus(train))
         else:
             llm = WorldLLM.from_pretrained(comp.llm.path, comp.llm)
-        build_world_model(comp, llm, scene_dirs).save(init, save_llm=True)
+        build_world_model(comp, llm, scene_dirs, seed=ctx.seed).save(init, save_llm=True)
     trains = comp.world.gaussian_tokens and cfg.steps > 0  # image-only models have nothing to train in stage 1
     model = run_training(ctx, "tokenizer", init, cfg, scene_dirs) if trains else load_world_model(init)
     extra = {"train_samples": len(train), "trained": float(trains)}

@@ -49,8 +49,6 @@ class TrainConfig:
     """Held-out (val split) samples scored at the end: LM loss and greedy answers (0 turns it off)."""
     max_new_tokens: int = 48
     """Greedy decoding budget of the held-out answers."""
-    seed: int = 0
-    """Seed of sampling and initialisation."""
     source: str | None = None
     """Take the stage's model from the model zoo instead of training it, e.g. ``zoo:gdwm-lora@champion`` or
     ``zoo:gdwm-lora/3`` (``gdwm run`` pins an alias to its version before planning: the cache key names it);

@@ -322,7 +322,19 @@ class WorldModel(nn.Module):
             self.llm.tokenizer.save_pretrained(str(out / LLM_DIR))
             self.llm.image_processor.save_pretrained(str(out / LLM_DIR))
         if self.peft is not None:
-            self.peft.save_pretrained(str(out / LORA_DIR))
+            # the base model is llm/ beside it (or llm.path), never the absolute path it was loaded from: the same
+            # model saved from another workdir is the same bytes
+            config = self.peft.get_base_model().config
+            before = config._name_or_path, {n: c.base_model_name_or_path for n, c in self.peft.peft_config.items()}
+            config._name_or_path = LLM_DIR
+            for c in self.peft.peft_config.values():
+                c.base_model_name_or_path = LLM_DIR
+            try:
+                self.peft.save_pretrained(str(out / LORA_DIR))
+            finally:
+                config._name_or_path = before[0]
+                for n, c in self.peft.peft_config.items():
+                    c.base_model_name_or_path = before[1][n]
 
 
 def load_decoders(scene_dirs: dict[str, Path]) -> dict[str, tuple[FeatureAEConfig, nn.Module]]:
@@ -339,8 +351,12 @@ def load_decoders(scene_dirs: dict[str, Path]) -> dict[str, tuple[FeatureAEConfi
     return out
 
 
-def build_world_model(comp: Components, llm: WorldLLM, scene_dirs: dict[str, Path]) -> WorldModel:
-    return WorldModel(comp, llm, load_decoders(scene_dirs) if comp.world.gaussian_tokens else {})
+def build_world_model(comp: Components, llm: WorldLLM, scene_dirs: dict[str, Path], seed: int) -> WorldModel:
+    """A fresh world model: the adapter's initial weights come from ``seed`` alone, not from whatever the process's
+    generator holds."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return WorldModel(comp, llm, load_decoders(scene_dirs) if comp.world.gaussian_tokens else {})
 
 
 def load_world_model(path: Path, *, llm_path: str | None = None) -> WorldModel:

@@ -40,6 +40,7 @@ def run_training(
             "data_root": str(ctx.data_root),
             "scene_dirs": {k: str(v) for k, v in scene_dirs.items()},
             "train": asdict(cfg),
+            "seed": ctx.seed,
         },
     )
     model = load_world_model(init_dir)

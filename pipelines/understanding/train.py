@@ -38,14 +38,14 @@ def train_loop(s: TrainSession) -> None:
     c = s.config
     kind = LoraStageConfig if c["stage"] == "lora" else TrainConfig
     cfg = kind(**{k: v for k, v in c["train"].items() if k in kind.__dataclass_fields__})
-    torch.manual_seed(cfg.seed)
+    torch.manual_seed(c["seed"])  # the trial seed: LoRA init, dropout
     model = open_model(c)
     device = ray.train.torch.get_device() if s.world_size > 1 or torch.cuda.is_available() else torch.device("cpu")
     ds = GSQADataset(c["data_root"])
     scene_dirs = {k: Path(v) for k, v in c["scene_dirs"].items()}
     samples, _ = load_samples(ds, "train", scene_dirs, need_gaussians=model.gaussian_tokens)
     store = FrameStore(ds, scene_dirs, model.comp.world.weather, model.comp.world.trajectory_frames)
-    sampler = TaskSampler(samples, cfg.task_alpha, cfg.seed)
+    sampler = TaskSampler(samples, cfg.task_alpha, c["seed"])
     params = model.trainable_parameters()
     opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
     start = 0

@@ -52,21 +52,22 @@ def _data_info(cfg: DictConfig, _args: list[str]) -> int:
 
 def _run(cfg: DictConfig, args: list[str]) -> int:
     from gdwm.dag import DagError
-    from gdwm.runner import RunError, run_pipeline
+    from gdwm.runner import PlanError, RunError, run_pipeline
 
     try:
-        summary = run_pipeline(cfg, dry_run="--dry-run" in args)
-    except DagError as e:
-        err_console.print(f"gdwm run: pipeline error: {e}", markup=False)
+        # `gdwm run` has no command defaults: its config is composed from the user's overrides alone, and so is each
+        # seed's (seeds=[...])
+        summary = run_pipeline(cfg, [a for a in args if not a.startswith("--")], dry_run="--dry-run" in args)
+    except (DagError, PlanError) as e:
+        err_console.print(f"gdwm run: {'pipeline error: ' if isinstance(e, DagError) else ''}{e}", markup=False)
         return 2
     except RunError as e:
         err_console.print(f"gdwm run: {e}", markup=False)
         return 1
-    if summary.failed:
-        for msg in summary.failed.values():
+    for t in summary.trials:
+        for msg in t.failed.values():
             err_console.print(f"gdwm run: {msg}", markup=False)
-        return 1
-    return 0
+    return 0 if summary.ok else 1
 
 
 def _status(cfg: DictConfig, _args: list[str]) -> int:
@@ -94,6 +95,7 @@ def _status(cfg: DictConfig, _args: list[str]) -> int:
 
 
 def _sweep(cfg: DictConfig, args: list[str]) -> int:
+    from gdwm.plan import RunError
     from gdwm.sweep import SweepError, load_sweep, report, run_sweep
 
     t0 = time.perf_counter()
@@ -102,6 +104,9 @@ def _sweep(cfg: DictConfig, args: list[str]) -> int:
     except SweepError as e:
         err_console.print(f"gdwm sweep: {e}", markup=False)
         return 2
+    except RunError as e:
+        err_console.print(f"gdwm sweep: {e}", markup=False)
+        return 1
     if "--dry-run" in args:
         return 0
     n = len(summary.trials)
@@ -113,9 +118,10 @@ def _sweep(cfg: DictConfig, args: list[str]) -> int:
     work = f" workdir={cfg.workdir}" if cfg.workdir != "./gdwm-work" else ""
     console.print(f"registered variants: gdwm zoo list{work}")
     console.print(f"MLflow UI: gdwm ui{work}  ->  {ui_url(cfg)}")
-    for label, msg in summary.failed.items():
-        err_console.print(f"gdwm sweep: trial '{label}' failed at {msg}", markup=False)
-    return 1 if summary.failed else 0
+    for t in summary.trials:
+        for stage, msg in list(t.failed.items())[:1]:
+            err_console.print(f"gdwm sweep: trial '{t.trial.name}' failed at {stage}: {msg}", markup=False)
+    return 0 if summary.ok else 1
 
 
 def _regress(cfg: DictConfig, args: list[str]) -> int:

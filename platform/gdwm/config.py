@@ -108,6 +108,9 @@ class RunSettings:
     """Show the rich live view while running (off when stdout is not a terminal)."""
     worker_logs: bool = False
     """Stream Ray workers' stdout/stderr to the driver (errors reach MLflow as error.txt either way)."""
+    deterministic: bool | None = None
+    """Bit-identical trials: every stage starts from its seed with a fixed torch thread count, and CUDA uses
+    deterministic kernels (slower on GPUs). null = on where a stage runs without CUDA, off where it has CUDA."""
 
 
 @dataclass
@@ -133,7 +136,11 @@ class GdwmConfig:
     overwrite: bool = False
     """Replace an existing output (e.g. a dataset) instead of refusing."""
     seed: int = 0
-    """Global seed."""
+    """The trial seed: seeded stages (training, sampling) derive every random stream from it; model configs follow
+    it through ``${seed}``. Seed-free stages (reconstruction, distillation) ignore it."""
+    seeds: list[int] | None = None
+    """One trial per seed, for ``gdwm run`` and ``gdwm sweep`` alike (e.g. ``seeds=[0,1,2]``); overrides a sweep's or
+    a benchmark's own ``seeds``. null = the sweep's/benchmark's seeds, else ``[seed]``."""
     data: Any = MISSING
     """Dataset (group ``data/``)."""
     cluster: Any = MISSING
@@ -194,6 +201,9 @@ class SweepConfig:
     """Override key -> values; their cartesian product is crossed with every row."""
     baseline: str | None = None
     """Row label the report's deltas are against (default: the first row)."""
+    seeds: list[int] | None = None
+    """Seeds of every row: one trial per (row, grid point, seed); ``seeds=[...]`` on the command line overrides
+    them. null = ``[seed]``."""
 
 
 def _register_platform(cs: ConfigStore) -> None:

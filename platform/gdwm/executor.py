@@ -19,6 +19,7 @@ from typing import Any
 import ray
 
 from gdwm.cache import Cache, cache_key
+from gdwm.determinism import stage_start
 from gdwm.stage import StageContext, StageDef, UpstreamOutput
 from gdwm.tracking import Tracker, call
 from gdwm.zoo.registry import lineage_tags
@@ -56,7 +57,8 @@ class RunEnv:
     resources: Mapping[str, Mapping[str, float]]
     on_scene_error: str = "fail"
     max_retries: int = 3
-    seed: int = 0
+    deterministic: bool | None = None
+    """``run.deterministic`` (null: on without CUDA), applied where each stage runs."""
     train_settings: Mapping[str, Any] = field(default_factory=dict)
     run_tags: Mapping[str, str] = field(default_factory=dict)
     tracking_uri: str | None = None
@@ -76,6 +78,21 @@ class StageResult:
     failed: Mapping[str, str] = field(default_factory=dict)
     """Per-scene stages with on_scene_error=skip: scene -> traceback of the scenes left out."""
     extra: Mapping[str, Any] = field(default_factory=dict)
+
+
+SEED_KEY = "seed"
+"""Where a seeded stage's config subset carries the trial seed (so it enters the key, manifest and params)."""
+
+
+def stage_config(sd: StageDef, cfg: Any) -> dict[str, Any]:
+    """The config a stage's key and run depend on: its declared subtrees (resolved, plain), plus the trial seed
+    (``cfg.seed``) for a seeded stage."""
+    from omegaconf import OmegaConf
+
+    out = {k: OmegaConf.to_container(OmegaConf.select(cfg, k), resolve=True) for k in sd.config}
+    if sd.seeded:
+        out[SEED_KEY] = int(cfg.seed)
+    return out
 
 
 def stage_key(sd: StageDef, subset: Mapping, upstream: Mapping[str, str], env: RunEnv, scene: str | None = None) -> str:
@@ -144,7 +161,8 @@ def _context(sd: StageDef, key: str, subset, env: RunEnv, results, out_dir: Path
         scene=scene,
         state=state,
         progress_sink=env.progress,
-        seed=env.seed,
+        seed=subset[SEED_KEY] if sd.seeded else None,
+        deterministic=env.deterministic,
         train_settings=dict(env.train_settings),
         tracking_uri=env.tracking_uri,
     )
@@ -157,6 +175,8 @@ def _execute(sd, key, subset, env, results, tracker, scene=None, state=None) -> 
         out = Path(tmp) / "out"
         out.mkdir()
         ctx = _context(sd, key, subset, env, results, out, tracker, scene, state)
+        # whatever earlier tasks left in this worker's generators and thread count must not reach the output
+        stage_start(ctx.seed or 0, ctx.resources.get("num_cpus", 1), env.deterministic)
         extra = sd.fn(ctx) or {}
         if not isinstance(extra, dict):
             raise TypeError(f"stage '{sd.name}' returned {type(extra).__name__}; return None or a JSON-able dict")
@@ -232,8 +252,9 @@ def _end_failed(env: RunEnv, run_id: str, text: str) -> None:
 class SceneWorker:
     """Holds a per-scene stage's heavy state (``setup``) and processes scenes one at a time."""
 
-    def __init__(self, sd: StageDef, subset: dict):
+    def __init__(self, sd: StageDef, subset: dict, num_cpus: float, deterministic: bool | None):
         self.sd = sd
+        stage_start(0, num_cpus, deterministic)  # heavy state (a random projection, say) the same in every actor
         self.state = sd.setup(subset) if sd.setup is not None else None
 
     def process(self, scene: str, key: str, subset: dict, env: RunEnv, run_id: str, *results: StageResult):
@@ -276,8 +297,8 @@ def run_scene_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResu
         raise StageFailed(sd.name, errors)
     if errors:
         call(env.sink, "log_text", run_id, "\n\n".join(f"== {s} ==\n{tb}" for s, tb in errors.items()), "skipped.txt")
-    ok_keys = {s: keys[s] for s in done}
-    agg = aggregate_key(sd, subset, ok_keys, env)
+    done = {s: done[s] for s in scenes if s in done}  # the dataset's scene order, not the order scenes finished in
+    agg = aggregate_key(sd, subset, {s: k for s, (k, _) in done.items()}, env)
     call(env.sink, "end_run", run_id, "FINISHED")
     _progress(env, sd.name, None, "done", key=agg, message=f"{len(errors)} skipped" if errors else "")
     return StageResult(sd.name, agg, False, run_id, scenes=done, failed={**errors})
@@ -292,7 +313,7 @@ def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, done) -> d
         max_restarts=env.max_retries,
         max_task_retries=env.max_retries,
     )
-    actors = [actor_cls.remote(sd, subset) for _ in range(n)]
+    actors = [actor_cls.remote(sd, subset, float(res.get("num_cpus", 1)), env.deterministic) for _ in range(n)]
     queue = list(misses)
     running: dict[ray.ObjectRef, tuple[str, Any]] = {}
     errors: dict[str, str] = {}

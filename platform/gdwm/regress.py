@@ -1,10 +1,16 @@
 """``gdwm regress benchmark=NAME``: evaluate what a benchmark names, diff every metric against the baseline with its
 direction and tolerance, log a ``gdwm.kind=regression`` run with the table and a trend plot, and exit 0 (no
-regression), 1 (regression) or 2 (error) — what a nightly job needs to fail loudly.
+regression), 1 (regression) or 2 (error) — what a nightly job needs to fail loudly, and only on real regressions.
 
 A benchmark (``conf/benchmark/NAME.yaml``) names an experiment (overrides and targets; zoo references such as
-``stage.lora.source=zoo:gdwm-lora@champion`` evaluate a registered version), the metrics with their tolerances, and
-performance benchmarks from ``benchmarks/`` whose figures become metrics ``perf/<bench>/<metric>``.
+``stage.lora.source=zoo:gdwm-lora@champion`` evaluate a registered version), the seeds it runs (one trial each; the
+compared value is their mean), the metrics with their tolerances, and performance benchmarks from ``benchmarks/``
+whose figures become metrics ``perf/<bench>/<metric>``.
+
+A tolerance is a fixed amount (``tolerance: 1.0``, or a fraction with ``relative: true``), or the baseline's own
+noise: ``tolerance: {sigma: 3}`` allows 3 standard deviations of the baseline's spread over its seeds. With
+``test: bootstrap`` a worsening is a regression only if a paired bootstrap over the held-out samples (both runs'
+per-sample predictions, combined over seeds) finds it significant, beyond the tolerance.
 """
 
 from __future__ import annotations
@@ -14,9 +20,11 @@ import math
 import re
 import sys
 import tempfile
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
+from typing import Any
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 from rich.table import Table
@@ -33,6 +41,11 @@ class Direction(StrEnum):
     lower = "lower"
 
 
+class CheckTest(StrEnum):
+    none = "none"
+    bootstrap = "bootstrap"
+
+
 @dataclass
 class MetricCheck:
     """One watched metric."""
@@ -41,10 +54,29 @@ class MetricCheck:
     """Metric name as logged (``nuinteract/avg``, ``perf/select/...``)."""
     direction: Direction = Direction.higher
     """Which way is better."""
-    tolerance: float = 0.0
-    """Allowed worsening before it is a regression."""
+    tolerance: Any = 0.0
+    """Allowed worsening before it is a regression: an amount (``1.0``), or ``{sigma: K}``, K standard deviations of
+    the baseline's spread over its seeds (the benchmark and its baseline need >= 2 seeds)."""
     relative: bool = False
-    """``tolerance`` is a fraction of the baseline value instead of an absolute amount."""
+    """A numeric ``tolerance`` is a fraction of the baseline value instead of an absolute amount."""
+    test: CheckTest = CheckTest.none
+    """``bootstrap``: a worsening beyond the tolerance counts only when a paired bootstrap over the held-out samples
+    (baseline vs now, combined over seeds) finds it significant at ``alpha`` (needs per-sample predictions)."""
+
+    def __post_init__(self) -> None:
+        t = self.tolerance
+        if isinstance(t, Mapping):
+            if set(t) != {"sigma"} or isinstance(t["sigma"], bool) or not isinstance(t["sigma"], int | float):
+                raise ValueError(f"metric '{self.name}': tolerance must be a number or {{sigma: K}}, got {dict(t)}")
+            if t["sigma"] < 0 or self.relative:
+                raise ValueError(f"metric '{self.name}': tolerance {{sigma: K}} needs K >= 0 and relative: false")
+            self.tolerance = {"sigma": float(t["sigma"])}
+        elif isinstance(t, bool) or not isinstance(t, int | float) or t < 0:
+            raise ValueError(f"metric '{self.name}': tolerance must be a number >= 0 or {{sigma: K}}, got {t!r}")
+
+    @property
+    def sigma(self) -> float | None:
+        return self.tolerance["sigma"] if isinstance(self.tolerance, dict) else None
 
 
 @dataclass
@@ -63,6 +95,13 @@ class BenchmarkConfig:
     """Performance benchmarks from ``benchmarks/`` (run with ``--quick``); their figures become ``perf/...``."""
     baseline: str | None = None
     """A run id to compare against; default: the latest run of this suite tagged as baseline."""
+    seeds: list[int] | None = None
+    """Seeds of the evaluation, one trial each; the watched value is their mean (``seeds=[...]`` on the command
+    line overrides them). null = ``[seed]``."""
+    alpha: float = 0.05
+    """Significance level of ``test: bootstrap``."""
+    resamples: int = 1000
+    """Bootstrap resamples of ``test: bootstrap``."""
 
 
 class RegressError(Exception):
@@ -82,27 +121,54 @@ class Row:
         return None if self.baseline is None or self.now is None else self.now - self.baseline
 
 
-def check(checks: list[MetricCheck], baseline: dict[str, float] | None, now: dict[str, float]) -> list[Row]:
-    """One row per watched metric; a metric missing now is a regression, one new to the suite is not."""
+Paired = Callable[[str], tuple[float, float] | None]
+"""metric -> the (1 - alpha) bootstrap interval of (now - baseline), or None without per-sample data."""
+
+
+def check(
+    checks: list[MetricCheck], baseline: dict[str, float] | None, now: dict[str, float], paired: Paired | None = None
+) -> list[Row]:
+    """One row per watched metric; a metric missing now is a regression, one new to the suite is not.
+
+    ``baseline`` and ``now`` hold means, with ``std/<metric>`` where there were >= 2 seeds (what ``{sigma: K}``
+    scales); ``paired`` gives the bootstrap interval ``test: bootstrap`` needs."""
     rows = []
     for c in checks:
         b, n = (baseline or {}).get(c.name), now.get(c.name)
-        tol = c.tolerance * abs(b) if (c.relative and b is not None) else c.tolerance
-        shown = f"{c.tolerance:.0%}" if c.relative else f"{c.tolerance:g}"
-        shown += " ↑" if c.direction == Direction.higher else " ↓"
+        arrow = " ↑" if c.direction == Direction.higher else " ↓"
+        if c.sigma is not None:
+            spread = (baseline or {}).get(f"std/{c.name}")
+            tol = c.sigma * spread if spread is not None else math.nan
+            shown = f"{c.sigma:g}σ = {tol:.3g}" if spread is not None else f"{c.sigma:g}σ (no spread)"
+        else:
+            tol = c.tolerance * abs(b) if (c.relative and b is not None) else float(c.tolerance)
+            shown = f"{c.tolerance:.0%}" if c.relative else f"{c.tolerance:g}"
+        if c.test is CheckTest.bootstrap:
+            shown += ", bootstrap"
         if n is None or (isinstance(n, float) and math.isnan(n)):
             verdict = "missing"
         elif b is None:
             verdict = "new"
+        elif math.isnan(tol):
+            verdict = "no spread"
         else:
             gain = (n - b) if c.direction == Direction.higher else (b - n)
             verdict = "REGRESSION" if gain < -tol - 1e-12 else "improved" if gain > 1e-12 else "ok"
-        rows.append(Row(c.name, b, n, shown, verdict))
+            if verdict != "ok" and c.test is CheckTest.bootstrap:
+                ci = paired(c.name) if paired is not None else None
+                if ci is None:
+                    verdict = "untestable"
+                else:  # significant only when the interval of (now - baseline) excludes 0
+                    lo, hi = ci if c.direction == Direction.higher else (-ci[1], -ci[0])
+                    if (verdict == "REGRESSION" and hi >= 0) or (verdict == "improved" and lo <= 0):
+                        verdict = "ok (not significant)"
+        rows.append(Row(c.name, b, n, shown + arrow, verdict))
     return rows
 
 
 def failed(rows: list[Row]) -> list[Row]:
-    return [r for r in rows if r.verdict in ("REGRESSION", "missing")]
+    """Rows that fail the suite: a regression, a metric gone, or a check that could not be made as configured."""
+    return [r for r in rows if r.verdict in ("REGRESSION", "missing", "no spread", "untestable")]
 
 
 def perf_metrics(names: list[str]) -> dict[str, float]:
@@ -131,41 +197,60 @@ def _slug(text: str) -> str:
 def load_benchmark(cfg: DictConfig) -> BenchmarkConfig:
     if cfg.get("benchmark") is None:
         raise RegressError("no benchmark selected: pass benchmark=NAME (conf/benchmark/)")
-    return OmegaConf.to_object(cfg.benchmark)
+    try:
+        return OmegaConf.to_object(cfg.benchmark)
+    except ValueError as e:  # MetricCheck's own validation (the tolerance's form)
+        raise RegressError(f"benchmark.metrics: {e}") from e
 
 
 def regress(cfg: DictConfig, argv: list[str]) -> int:
     """Run the suite; 0 no regression, 1 regression (named), 2 error."""
-    from gdwm.runner import evaluation_metrics, run_pipeline
+    from gdwm.plan import PlanError
+    from gdwm.runner import aggregate, evaluation_metrics, evaluation_samples, run_pipeline
     from gdwm.tracking import TrackingBackend
 
     bench = load_benchmark(cfg)
     user = [a for a in argv if not a.startswith("--") and a.split("=", 1)[0] != "benchmark"]
+    overrides = [f"targets=[{','.join(bench.targets)}]", *bench.overrides, *user]
     try:
-        run_cfg = load_config([f"targets=[{','.join(bench.targets)}]", *bench.overrides, *user])
+        run_cfg = load_config(overrides)
     except ConfigError as e:
         raise RegressError(f"benchmark '{bench.name}' overrides: {e}") from e
-    summary = run_pipeline(run_cfg, live=False)
-    if summary.failed:
+    sigma = [c.name for c in bench.metrics if c.sigma is not None]
+    n_seeds = len(run_cfg.seeds if run_cfg.get("seeds") is not None else bench.seeds or [run_cfg.seed])
+    if sigma and n_seeds < 2:
+        raise RegressError(
+            f"benchmark '{bench.name}': {sigma[0]} has tolerance {{sigma: K}}, which needs >= 2 seeds "
+            f"(benchmark.seeds has {n_seeds})"
+        )
+    try:
+        summary = run_pipeline(run_cfg, overrides, seeds=bench.seeds, seeds_key="benchmark.seeds", live=False)
+    except PlanError as e:
+        raise RegressError(f"benchmark '{bench.name}': {e}") from e
+    if not summary.ok:
         raise RegressError(f"benchmark '{bench.name}': {'; '.join(summary.failed.values())}")
-    from gdwm.dag import load_pipeline
-
-    now = evaluation_metrics(load_pipeline(run_cfg, list(run_cfg.targets)), summary.results)
-    now |= perf_metrics(bench.perf)
+    per_seed = [evaluation_metrics(t.trial.pipe, t.results) for t in summary.trials]
+    now = aggregate(per_seed) | perf_metrics(bench.perf)
+    now_samples = {t.trial.seed: evaluation_samples(t.trial.pipe, t.results) for t in summary.trials}
 
     backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
     base_run = _baseline(backend, bench)
-    rows = check(bench.metrics, base_run["metrics"] if base_run else None, now)
-    print_rows(bench, rows, base_run)
+    paired = None
+    if base_run and any(c.test is CheckTest.bootstrap for c in bench.metrics):
+        paired = _paired(backend, bench, base_run["run_id"], now_samples)
+    rows = check(bench.metrics, base_run["metrics"] if base_run else None, now, paired)
+    print_rows(bench, rows, base_run, [t.trial.seed for t in summary.trials])
     run_id = backend.create_run(
         f"regress-{bench.name}",
         {"gdwm.kind": KIND, "gdwm.benchmark": bench.name, "gdwm.verdict": "fail" if failed(rows) else "pass",
-         "gdwm.baseline_run": base_run["run_id"] if base_run else ""},
+         "gdwm.baseline_run": base_run["run_id"] if base_run else "",
+         "gdwm.seeds": ",".join(str(t.trial.seed) for t in summary.trials)},
     )  # fmt: skip
     try:
         backend.log_metrics(run_id, now)
         backend.log_params(run_id, {"overrides": " ".join(bench.overrides + user), "targets": bench.targets})
         backend.log_text(run_id, markdown(rows), "regression.md")
+        _log_samples(backend, run_id, now_samples)
         with tempfile.TemporaryDirectory() as tmp:
             plot = trend_plot(backend, bench, now, Path(tmp) / "trend.png")
             if plot is not None:
@@ -177,9 +262,63 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
         backend.end_run(run_id, "FINISHED")
     bad = failed(rows)
     for r in bad:
-        err_console.print(f"regression: {r.metric} {_fmt(r.baseline)} -> {_fmt(r.now)} (tolerance {r.tolerance})",
+        why = "" if r.verdict in ("REGRESSION", "missing") else f": {r.verdict}"
+        err_console.print(f"regression: {r.metric} {_fmt(r.baseline)} -> {_fmt(r.now)} (tolerance {r.tolerance}){why}",
                           markup=False)  # fmt: skip
     return 1 if bad and "--set-baseline" not in argv else 0
+
+
+SAMPLES_DIR = "samples"
+"""Where a regression run keeps its trials' per-sample tables: ``samples/<stage>/seed_<N>.parquet``."""
+
+
+def _log_samples(backend, run_id: str, samples: dict[int, dict[str, tuple[Path, str]]]) -> None:
+    """Each seed's per-sample tables and their scorers (``gdwm.scorer.<stage>``): what a later run's bootstrap
+    test compares against when this run is its baseline."""
+    scorers = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed, stages in samples.items():
+            for stage, (path, scorer) in stages.items():
+                named = Path(tmp) / stage / f"seed_{seed}{path.suffix}"
+                named.parent.mkdir(parents=True, exist_ok=True)
+                named.write_bytes(path.read_bytes())
+                backend.log_artifact(run_id, str(named), f"{SAMPLES_DIR}/{stage}")
+                scorers[f"gdwm.scorer.{stage}"] = scorer
+    if scorers:
+        backend.set_tags(run_id, scorers)
+
+
+def _paired(backend, bench: BenchmarkConfig, base_id: str, now: dict[int, dict[str, tuple[Path, str]]]) -> Paired:
+    """metric -> interval of (now - baseline): a paired bootstrap over the held-out samples both runs answered, each
+    side the mean over its seeds (``gdwm.compare.stats``)."""
+    import pyarrow.parquet as pq
+
+    from gdwm.compare.samples import quiet_downloads, scorer
+    from gdwm.compare.stats import SampleSet, Settings, paired_bootstrap
+
+    tags = backend.client.get_run(base_id).data.tags
+    settings = Settings(alpha=bench.alpha, confidence=1 - bench.alpha, n_resamples=bench.resamples)
+    metrics = [c.name for c in bench.metrics if c.test is CheckTest.bootstrap]
+    out: dict[str, tuple[float, float]] = {}
+    stages = sorted({st for per in now.values() for st in per})
+    with tempfile.TemporaryDirectory() as tmp, quiet_downloads():
+        for stage in stages:
+            spec = tags.get(f"gdwm.scorer.{stage}")
+            files = backend.client.list_artifacts(base_id, f"{SAMPLES_DIR}/{stage}") if spec else []
+            if not files:
+                continue
+            fn = scorer(spec)
+
+            def load(path: str, fn=fn) -> SampleSet:
+                t = pq.read_table(path)
+                return SampleSet(t["sample_id"].to_pylist(), t, fn)
+
+            base = [load(backend.client.download_artifacts(base_id, f.path, tmp)) for f in files]
+            mine = [load(str(per[stage][0])) for per in now.values() if stage in per]
+            b = paired_bootstrap(stage, {0: base, 1: mine}, metrics, settings, {0: "baseline", 1: "now"})
+            if b is not None:
+                out |= {m: (-hi, -lo) for (_, _, m), (lo, hi) in b.diffs.items()}  # diffs are baseline - now
+    return out.get
 
 
 def _baseline(backend, bench: BenchmarkConfig) -> dict | None:
@@ -201,12 +340,13 @@ def _fmt(v: float | None) -> str:
     return "–" if v is None else f"{v:.4g}"
 
 
-def print_rows(bench: BenchmarkConfig, rows: list[Row], base_run: dict | None) -> None:
+def print_rows(bench: BenchmarkConfig, rows: list[Row], base_run: dict | None, seeds: list[int]) -> None:
     where = f"baseline run {base_run['run_id'][:12]}" if base_run else "no baseline yet (--set-baseline records one)"
-    t = Table(title=f"regression '{bench.name}' vs {where}", header_style="bold")
+    mean = f", mean of seeds {seeds}" if len(seeds) > 1 else ""
+    t = Table(title=f"regression '{bench.name}' vs {where}{mean}", header_style="bold")
     for col in ("metric", "baseline", "now", "delta", "tolerance", "verdict"):
         t.add_column(col)
-    style = {"REGRESSION": "red", "missing": "red", "improved": "green"}
+    style = {"REGRESSION": "red", "missing": "red", "no spread": "red", "untestable": "red", "improved": "green"}
     for r in rows:
         d = "–" if r.delta is None else f"{r.delta:+.4g}"
         v = f"[{style[r.verdict]}]{r.verdict}[/{style[r.verdict]}]" if r.verdict in style else r.verdict

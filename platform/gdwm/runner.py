@@ -1,16 +1,32 @@
-"""``gdwm run``: validate, plan, execute the DAG on Ray, track it in MLflow, summarise."""
+"""The one driver of every launch: ``gdwm run`` (one row), ``gdwm sweep`` (rows x grid), ``gdwm regress``.
+
+Trials come planned (``gdwm.plan``): one per (row, seed), each with its config and every stage key. The driver
+submits each distinct stage key once as a Ray task chained to its upstream ObjectRefs -- a stage several trials
+share (seed-free stages across the seeds of a row, common upstream across rows) runs once and feeds them all --
+polls until every trial has an outcome, finds the root cause of each failure, and records it all in MLflow:
+
+- ``gdwm sweep``: the sweep's run (``gdwm.kind=sweep``) holds a run per row (``row``: the row's aggregate, mean,
+  ``std/<metric>`` and ``n/<metric>`` over its finished seeds), which holds a run per seed (``trial``: that seed's
+  evaluation metrics, ``gdwm.seed``, links to the stage runs it used, its per-sample tables);
+- ``gdwm run``: its run (``gdwm.kind=run``) is the row; with one seed it is the trial too, with several it holds a
+  ``trial`` run per seed.
+
+Stage runs nest under the launch's run, one per cache key (``gdwm.executor``). Every run ends FINISHED, FAILED or
+KILLED; a killed driver's leftovers are reconciled by the next one.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
 import json
+import math
 import os
 import signal
+import statistics
 import sys
 import threading
-import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,158 +36,79 @@ from rich.live import Live
 from rich.table import Table
 
 from gdwm.cache import Cache
-from gdwm.dag import Pipeline, load_pipeline
-from gdwm.datasets import build_dataset
-from gdwm.executor import (
-    RunEnv,
-    StageFailed,
-    StageResult,
-    aggregate_key,
-    run_scene_stage,
-    run_stage,
-    stage_key,
-    task_options,
-    upstream_keys,
-)
+from gdwm.config import SweepConfig
+from gdwm.dag import Pipeline
+from gdwm.determinism import worker_env
+from gdwm.executor import StageFailed, StageResult, run_scene_stage, run_stage, stage_config, task_options
+from gdwm.plan import PlanError, PlanRow, Row, RunError, Trial, check_seed_overrides, compose, resolve_seeds
 from gdwm.progress import ProgressActor, render
 from gdwm.term import console
 from gdwm.tracking import AliveExcept, RunGuard, call, open_tracking, process_owner
-from gdwm.zoo.registry import pin_references
+from gdwm.zoo.registry import metric_tags
 
+__all__ = ["PlanError", "RunError", "launch", "run_pipeline"]
 
-class RunError(Exception):
-    """A run that could not start (exit 1), e.g. a dataset that is absent and cannot be generated."""
+TRIAL_KEY, ROW_KEY, LAUNCH = "gdwm.trial_key", "gdwm.row_key", "gdwm.launch"
 
-
-@dataclass
-class PlanRow:
-    stage: str
-    scene: str | None
-    key: str
-    status: str  # cached | to run | blocked
-    resources: str
+Outcome = StageResult | str | None
+"""A stage's outcome for a trial: its result, an error message (it failed), or None (an upstream failed)."""
 
 
 @dataclass
-class RunSummary:
+class TrialResult:
+    trial: Trial
     results: dict[str, StageResult] = field(default_factory=dict)
     failed: dict[str, str] = field(default_factory=dict)
+    """Stage -> error message of the stages that failed."""
     blocked: list[str] = field(default_factory=list)
-    parent_run_id: str | None = None
-    wall: dict[str, float] = field(default_factory=dict)
+    """Stages that never ran because an upstream failed."""
+    metrics: dict[str, float] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
         return not self.failed and not self.blocked
 
 
-def subset(cfg: DictConfig, keys: tuple[str, ...]) -> dict:
-    return {k: OmegaConf.to_container(OmegaConf.select(cfg, k), resolve=True) for k in keys}
+@dataclass
+class LaunchSummary:
+    trials: list[TrialResult] = field(default_factory=list)
+    executions: int = 0
+    """Stage executions this invocation ran (distinct keys not cached)."""
+    naive: int = 0
+    """Stage executions the trials would need as independent runs without a cache."""
+    parent_run_id: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return all(t.ok for t in self.trials)
+
+    @property
+    def failed(self) -> dict[str, str]:
+        """Trial name -> ``stage: message`` of every failed trial."""
+        return {t.trial.name: "; ".join(t.failed.values()) for t in self.trials if t.failed}
+
+    @property
+    def results(self) -> dict[str, StageResult]:
+        """The stage results of the only trial (a one-seed ``gdwm run``)."""
+        if len(self.trials) != 1:
+            raise ValueError(f"{len(self.trials)} trials: read each one's results from .trials")
+        return self.trials[0].results
 
 
-def read_dataset_meta(root: Path) -> dict:
-    meta = root / "dataset.json"
-    if not meta.is_file():
-        raise RunError(f"dataset at {root} is absent or incomplete (no dataset.json)")
-    return json.loads(meta.read_text())
-
-
-def ensure_data(cfg: DictConfig) -> dict:
-    """The dataset's meta; a dataset that needs no source (synthetic) is generated first if absent."""
-    root = Path(cfg.data.root)
-    if not (root / "dataset.json").is_file():
-        if cfg.source is None and not cfg.data.needs_source:
-            console.print(f"generating {cfg.data.name} at {root} ...")
-            build_dataset(cfg, source=None)
-        else:
-            raise RunError(
-                f"dataset '{cfg.data.name}' not found at {root}: build it first "
-                f"(gdwm data import-gaussiandwm / convert-nuscenes source=DIR data={cfg.data.name})"
-            )
-    return read_dataset_meta(root)
-
-
-def env_settings(cfg: DictConfig, meta: dict) -> dict:
-    """RunEnv fields of a composed config (all but the tracking sink, parent run and progress actor)."""
-    res = {k: dict(v) for k, v in OmegaConf.to_container(cfg.cluster.resources, resolve=True).items()}
-    return dict(
-        cache_uri=cfg.cache.uri,
-        data_root=str(Path(cfg.data.root).resolve()),
-        data_fingerprint=meta["fingerprint"],
-        scenes=tuple(meta["scenes"]),
-        checkpoint_root=str(Path(cfg.workdir).resolve() / "checkpoints"),
-        resources=res,
-        on_scene_error=cfg.run.on_scene_error,
-        max_retries=cfg.run.max_retries,
-        seed=cfg.seed,
-        train_settings={"checkpoint_every": cfg.run.checkpoint_every, "max_failures": cfg.run.max_failures},
-        tracking_uri=cfg.tracking.uri,
-    )
-
-
-def _plan_result(sd, sub, env: RunEnv, ups: tuple[StageResult, ...], cache: Cache, rows: list[PlanRow]) -> StageResult:
-    """Predict one stage's keys and cache status, assuming every upstream scene succeeds."""
-    if sd.per_scene:
-        keys = {s: stage_key(sd, sub, upstream_keys(ups, s), env, scene=s) for s in env.scenes}
-        for s, k in keys.items():
-            hit = cache.lookup(sd.name, k, verify=False) is not None
-            rows.append(PlanRow(sd.name, s, k, "cached" if hit else "to run", sd.resources))
-        return StageResult(
-            sd.name, aggregate_key(sd, sub, keys, env), False, None, scenes={s: (k, "") for s, k in keys.items()}
-        )
-    key = stage_key(sd, sub, upstream_keys(ups, None), env)
-    hit = cache.lookup(sd.name, key, verify=False) is not None
-    rows.append(PlanRow(sd.name, None, key, "cached" if hit else "to run", sd.resources))
-    return StageResult(sd.name, key, hit, None)
-
-
-def plan(pipe: Pipeline, order: list[str], cfg: DictConfig, env: RunEnv) -> list[PlanRow]:
-    """Keys depend on upstream keys, not outputs, so the whole DAG's keys are known before anything runs."""
-    return plan_keys(pipe, order, cfg, env)[0]
-
-
-def plan_keys(pipe: Pipeline, order: list[str], cfg: DictConfig, env: RunEnv) -> tuple[list[PlanRow], dict[str, str]]:
-    """``plan``'s rows, and each stage's key as its downstream sees it (per-scene stages: the aggregate key)."""
-    cache = Cache(env.cache_uri)
-    rows: list[PlanRow] = []
-    predicted: dict[str, StageResult] = {}
-    for name in order:
-        sd = pipe.stages[name]
-        ups = tuple(predicted[u] for u in sd.upstream)
-        predicted[name] = _plan_result(sd, subset(cfg, sd.config), env, ups, cache, rows)
-    return rows, {name: r.key for name, r in predicted.items()}
-
-
-def print_plan(rows: list[PlanRow], env: RunEnv) -> None:
-    t = Table(title="plan", header_style="bold")
-    for col in ("stage", "scene", "status", "key", "resources"):
-        t.add_column(col)
-    for r in rows:
-        res = env.resources.get(r.resources, {})
-        cpus, gpus, n = res.get("num_cpus", 0), res.get("num_gpus", 0), res.get("num_workers", 1)
-        desc = f"{r.resources}: {cpus:g} CPU, {gpus:g} GPU, " + (f"x{n}" if n else "in-process")
-        t.add_row(r.stage, r.scene or "-", r.status, r.key[:12], desc)
-    console.print(t)
-    counts = {s: sum(1 for r in rows if r.status == s) for s in ("cached", "to run")}
-    console.print(", ".join(f"{n} {s}" for s, n in counts.items()))
-
-
-def _verify_all(rows: list[PlanRow], env_cache: Cache) -> bool:
-    return all(env_cache.lookup(r.stage, r.key, verify=True) is not None for r in rows)
-
-
+# ---- Ray and tracking ------------------------------------------------------------------------------------------
 def init_ray(cfg: DictConfig) -> bool:
     """Start (or join) Ray as the cluster config says; True if this call started it."""
     if ray.is_initialized():
         return False
     c = cfg.cluster
     kwargs = {"include_dashboard": False, "log_to_driver": cfg.run.worker_logs}
+    env_vars = worker_env(cfg.run.deterministic)
     if c.address:
         # A cluster's workers run the installed wheel (k8s/Dockerfile); the driver's paths mean nothing there.
-        ray.init(address=c.address, **kwargs)
+        ray.init(address=c.address, runtime_env={"env_vars": env_vars}, **kwargs)
     else:
         # Local workers import the stage modules from wherever the driver does.
-        env_vars = {"PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+        env_vars["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
         ray.init(num_cpus=c.num_cpus, num_gpus=c.num_gpus, runtime_env={"env_vars": env_vars}, **kwargs)
     if threading.current_thread() is threading.main_thread():
         # ray.init's own SIGTERM handler exits 1; exit 143 as a terminated process should (finally shuts Ray).
@@ -188,9 +125,372 @@ def _sigterm(signum: int, _frame) -> None:
     _TERMINATED.append(signum)
 
 
-def _run_key(pipe_name: str, order: list[str], rows: list[PlanRow]) -> str:
-    h = hashlib.sha256(json.dumps([pipe_name, order, [r.key for r in rows]]).encode())
-    return h.hexdigest()
+@contextlib.contextmanager
+def driver_session(cfg: DictConfig) -> Iterator:
+    """Ray (started here unless already up) and the tracking sink of one driver invocation; runs that dead drivers
+    left RUNNING are reconciled first. Whatever escapes (Ctrl-C, SIGTERM, an error) ends the runs this driver owns
+    KILLED now, not at the next reconcile."""
+    started = init_ray(cfg)
+    sink, close = open_tracking(cfg.tracking)
+    try:
+        call(sink, "reconcile")
+        yield sink
+    except BaseException:
+        call(sink, "reconcile", AliveExcept(process_owner()))
+        raise
+    finally:
+        close()
+        if started:
+            ray.shutdown()
+
+
+# ---- MLflow layout ---------------------------------------------------------------------------------------------
+@dataclass
+class Layout:
+    """Where one launch's runs go (module docstring): a sweep's run with a run per row, or a ``gdwm run``'s run."""
+
+    sweep: SweepConfig | None
+    """The sweep, or None for ``gdwm run``."""
+    launch_id: str
+    """Finds this launch's row and trial runs again on a re-run: ``sweep:<name>`` or ``run:<run key>``."""
+    pipeline: str
+
+    @property
+    def stage_tags(self) -> dict[str, str]:
+        return {"gdwm.sweep": self.sweep.name} if self.sweep else {}
+
+    def open(self, sink, cfg: DictConfig, rows: list[Row], trials: list[Trial]) -> str:
+        """The launch's run (found again or created), and every row's and trial's run under it."""
+        parent = self._parent(sink, cfg)
+        for row in rows:
+            mine = [t for t in trials if t.row is row]
+            row.run_id = parent if self.sweep is None else self._row_run(sink, parent, row, mine[0].cfg)
+            for t in mine:
+                t.run_id = row.run_id if len(mine) == 1 and self.sweep is None else self._trial_run(sink, row, t)
+        return parent
+
+    def _find(self, sink, tags: dict[str, str]) -> str | None:
+        found = call(sink, "search_runs", " and ".join(f"tags.`{k}` = '{v}'" for k, v in tags.items()))
+        if not found:
+            return None
+        call(sink, "reopen_run", found[0]["run_id"])
+        return found[0]["run_id"]
+
+    def _parent(self, sink, cfg: DictConfig) -> str:
+        """A re-run (a resume after a crash, an added row) continues the same run."""
+        if self.sweep is not None:
+            tags = {"gdwm.kind": "sweep", "gdwm.sweep": self.sweep.name}
+            run_id = self._find(sink, tags) or call(sink, "create_run", f"sweep-{self.sweep.name}", tags)
+            text = OmegaConf.to_yaml(OmegaConf.structured(self.sweep))
+            call(sink, "log_text", run_id, text, "sweep.yaml")
+            return run_id
+        tags = {"gdwm.kind": "run", "gdwm.run_key": self.launch_id.removeprefix("run:")}
+        run_id = self._find(sink, tags)
+        if run_id is None:
+            tags |= {"gdwm.pipeline": self.pipeline}
+            run_id = call(sink, "create_run", f"run-{self.pipeline}-{tags['gdwm.run_key'][:8]}", tags, None)
+            call(sink, "log_params", run_id, OmegaConf.to_container(cfg, resolve=True))
+        return run_id
+
+    def _row_tags(self, row: Row) -> dict[str, str]:
+        tags = {"gdwm.row": row.label, "gdwm.trial_index": str(row.index), "gdwm.seeds": ",".join(map(str, row.seeds))}
+        tags |= {f"gdwm.factor.{k}": v for k, v in row.factors.items()}
+        return tags | ({"gdwm.sweep": self.sweep.name, "gdwm.overrides": " ".join(row.overrides)} if self.sweep else {})
+
+    def _row_run(self, sink, parent: str, row: Row, cfg: DictConfig) -> str:
+        tags = {"gdwm.kind": "row", ROW_KEY: row.key, LAUNCH: self.launch_id, **self._row_tags(row)}
+        run_id = self._find(sink, {ROW_KEY: row.key, LAUNCH: self.launch_id})
+        if run_id is not None:
+            call(sink, "set_tags", run_id, tags)  # an edited row keeps its run; its index may move
+            return run_id
+        run_id = call(sink, "create_run", f"{self.sweep.name}/{row.label}", tags, parent)
+        call(sink, "log_params", run_id, OmegaConf.to_container(cfg, resolve=True))
+        return run_id
+
+    def _trial_run(self, sink, row: Row, t: Trial) -> str:
+        tags = {"gdwm.kind": "trial", TRIAL_KEY: t.key, LAUNCH: self.launch_id, "gdwm.seed": str(t.seed)}
+        tags |= self._row_tags(row) if self.sweep else {}
+        run_id = self._find(sink, {TRIAL_KEY: t.key, LAUNCH: self.launch_id})
+        if run_id is not None:
+            call(sink, "set_tags", run_id, tags)
+            return run_id
+        name = f"{self.sweep.name}/{t.name}" if self.sweep else f"seed-{t.seed}"
+        run_id = call(sink, "create_run", name, tags, row.run_id)
+        call(sink, "log_params", run_id, OmegaConf.to_container(t.cfg, resolve=True))
+        return run_id
+
+
+def launch_key(pipe_name: str, trials: list[Trial]) -> str:
+    """Identity of a ``gdwm run``: the pipeline, the stages and every trial's keys (re-running continues it)."""
+    payload = [pipe_name, trials[0].order, [[r.key for r in t.plan] for t in trials]]
+    if len(trials) == 1:  # the layout a one-seed run had before seeds existed
+        payload = [pipe_name, trials[0].order, [r.key for r in trials[0].plan]]
+    return hashlib.sha256(json.dumps(payload).encode()).hexdigest()
+
+
+# ---- evaluation onto the trial's run ---------------------------------------------------------------------------
+def evaluation_metrics(pipe: Pipeline, results: dict[str, StageResult]) -> dict[str, float]:
+    """The numeric values evaluation stages returned (cached or not): the metrics of the trial's run."""
+    out: dict[str, float] = {}
+    for name, r in results.items():
+        if pipe.stages[name].evaluation:
+            out |= {k: float(v) for k, v in r.extra.items() if isinstance(v, int | float) and not isinstance(v, bool)}
+    return out
+
+
+def evaluation_samples(pipe: Pipeline, results: dict[str, StageResult]) -> dict[str, tuple[Path, str]]:
+    """Stage -> (per-sample table, ``module:function`` of its scorer) of the evaluation stages that keep one."""
+    out = {}
+    for name, r in results.items():
+        sd = pipe.stages[name]
+        if sd.evaluation and sd.samples and r.path and (Path(r.path) / sd.samples).is_file():
+            out[name] = (Path(r.path) / sd.samples, f"{sd.score.__module__}:{sd.score.__qualname__}")
+    return out
+
+
+def report_evaluation(sink, run_id: str, pipe: Pipeline, results: dict[str, StageResult]) -> dict[str, float]:
+    """The evaluation stages' metrics, per-sample tables (``<stage>/*.parquet``) and their scorers (tags
+    ``gdwm.samples.<stage>``, ``gdwm.scorer.<stage>``, what ``gdwm compare`` resamples) onto the trial's run."""
+    metrics = evaluation_metrics(pipe, results)
+    if metrics:
+        call(sink, "log_metrics", run_id, metrics)
+    for name, r in results.items():
+        if pipe.stages[name].evaluation and r.path:
+            for table in sorted(Path(r.path).glob("*.parquet")):
+                call(sink, "log_artifact", run_id, str(table), name)
+    samples = evaluation_samples(pipe, results)
+    tags = {f"gdwm.samples.{n}": f"{n}/{path.name}" for n, (path, _) in samples.items()}
+    tags |= {f"gdwm.scorer.{n}": scorer for n, (_, scorer) in samples.items()}
+    if tags:
+        call(sink, "set_tags", run_id, tags)
+    return metrics
+
+
+def aggregate(per_seed: list[dict[str, float]]) -> dict[str, float]:
+    """A row's aggregate over its finished seeds: ``<metric>`` the mean, ``std/<metric>`` (n >= 2), ``n/<metric>``."""
+    out: dict[str, float] = {}
+    for m in sorted({m for d in per_seed for m in d if not m.startswith("count/")}):
+        values = [d[m] for d in per_seed if m in d and not math.isnan(d[m])]
+        if not values:
+            continue
+        out[m] = statistics.fmean(values)
+        out[f"n/{m}"] = float(len(values))
+        if len(values) > 1:
+            out[f"std/{m}"] = statistics.stdev(values)
+    return out
+
+
+# ---- the driver loop -------------------------------------------------------------------------------------------
+def _root_cause(e: BaseException) -> BaseException:
+    while isinstance(e, ray.exceptions.RayTaskError) and e.cause is not None and e.cause is not e:
+        e = e.cause
+    return e
+
+
+def _outcome(ref: ray.ObjectRef, stage: str) -> Outcome:
+    try:
+        return ray.get(ref)
+    except Exception as e:  # Ray re-raises a task's error as a subclass of both RayTaskError and it
+        root = _root_cause(e)
+        if isinstance(root, StageFailed) and root.stage != stage:
+            return None
+        return StageFailed.__str__(root) if isinstance(root, StageFailed) else f"stage '{stage}' failed: {root!r}"
+
+
+def _print_stage(k: tuple[str, str], r: Outcome, users: list[str]) -> None:
+    what = "failed" if isinstance(r, str) else "blocked" if r is None else "cached" if r.cached else "done"
+    shared = f" (shared by {len(users)} trials)" if len(users) > 1 else ""
+    console.print(f"  {k[0]:<14} {k[1][:12]}  {what}{shared}", markup=False)
+
+
+def execute(
+    trials: list[Trial],
+    sink,
+    parent: str,
+    on_trial: Callable[[Trial, dict[str, Outcome]], None],
+    *,
+    stage_tags: dict[str, str] | None = None,
+    progress=None,
+    live: bool = False,
+    print_stages: bool = True,
+) -> int:
+    """Submit every distinct stage key once, poll until every trial has an outcome per stage, hand each finished
+    trial to ``on_trial``; returns how many stage executions ran (not cached)."""
+    submitted: dict[tuple[str, str], ray.ObjectRef] = {}
+    for t in trials:
+        env = t.env(sink, parent, progress, run_tags=dict(stage_tags or {}))
+        refs: dict[str, ray.ObjectRef] = {}
+        for name in t.order:
+            sd = t.pipe.stages[name]
+            k = (name, t.keys[name])
+            if k not in submitted:
+                fn = run_scene_stage if sd.per_scene else run_stage
+                ups = [refs[u] for u in sd.upstream]
+                submitted[k] = fn.options(**task_options(sd, env)).remote(sd, stage_config(sd, t.cfg), env, *ups)
+            refs[name] = submitted[k]
+    users = {k: [t.name for t in trials if t.keys.get(k[0]) == k[1]] for k in submitted}
+    outcome: dict[tuple[str, str], Outcome] = {}
+    pending = {ref: k for k, ref in submitted.items()}
+    waiting = list(trials)
+    executions = 0
+
+    def poll() -> None:
+        nonlocal executions
+        if _TERMINATED:
+            raise SystemExit(128 + _TERMINATED[0])
+        ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=0.5)
+        for ref in ready:
+            k = pending.pop(ref)
+            outcome[k] = _outcome(ref, k[0])
+            if print_stages:
+                _print_stage(k, outcome[k], users[k])
+            if isinstance(outcome[k], StageResult) and not outcome[k].cached:
+                executions += 1
+            if progress is not None and outcome[k] is None:
+                progress.status.remote(k[0], None, "blocked", message="an upstream stage failed")
+        for t in [t for t in waiting if all((n, t.keys[n]) in outcome for n in t.order)]:
+            waiting.remove(t)
+            on_trial(t, {n: outcome[(n, t.keys[n])] for n in t.order})
+
+    order = list(dict.fromkeys(n for t in trials for n in t.order))
+    if live and progress is not None and console.is_terminal:
+        with Live(render([], order), console=console, refresh_per_second=4) as view:
+            while pending or waiting:
+                poll()
+                view.update(render(ray.get(progress.snapshot.remote()), order))
+    else:
+        while pending or waiting:
+            poll()
+    return executions
+
+
+def launch(
+    cfg: DictConfig,
+    rows: list[Row],
+    trials: list[Trial],
+    layout: Layout,
+    *,
+    live: bool = False,
+    print_stages: bool = True,
+) -> LaunchSummary:
+    """Run planned trials under one driver session and record them as ``layout`` says."""
+    summary = LaunchSummary(naive=sum(len(t.order) for t in trials))
+    results: dict[int, TrialResult] = {}
+
+    with driver_session(cfg) as sink:
+        parent = layout.open(sink, cfg, rows, trials)
+        summary.parent_run_id = parent
+        progress = ProgressActor.remote() if layout.sweep is None else None
+
+        def on_trial(t: Trial, outcomes: dict[str, Outcome]) -> None:
+            results[id(t)] = _finish_trial(sink, layout, t, outcomes)
+            row_trials = [x for x in trials if x.row is t.row]
+            if all(id(x) in results for x in row_trials):
+                _finish_row(sink, layout, t.row, [results[id(x)] for x in row_trials])
+
+        try:
+            with RunGuard(sink, parent):
+                summary.executions = execute(trials, sink, parent, on_trial, stage_tags=layout.stage_tags,
+                                             progress=progress, live=live, print_stages=print_stages)  # fmt: skip
+                summary.trials = [results[id(t)] for t in trials]
+                if layout.sweep is None:
+                    call(sink, "log_metrics", parent, {"stages_run": summary.executions})
+                    _print_run_summaries(summary, progress)
+                    if not summary.ok:  # the guard ends the run FAILED; the caller reports from the summary
+                        bad = next(t for t in summary.trials if not t.ok)
+                        stage = next(iter(bad.failed), bad.blocked[0] if bad.blocked else "")
+                        raise StageFailed(stage, {None: bad.failed.get(stage, "blocked")})
+                else:
+                    call(sink, "log_metrics", parent, {
+                        "trials": len(trials), "trials_failed": sum(not t.ok for t in summary.trials),
+                        "stage_executions": summary.executions, "stage_executions_naive": summary.naive,
+                    })  # fmt: skip
+        except StageFailed:
+            pass
+    return summary
+
+
+def _finish_trial(sink, layout: Layout, t: Trial, outcomes: dict[str, Outcome]) -> TrialResult:
+    """Record one trial's outcome on its run: a failure (stage, error), or its evaluation and stage links."""
+    res = TrialResult(t)
+    for n, r in outcomes.items():
+        if isinstance(r, StageResult):
+            res.results[n] = r
+        elif isinstance(r, str):
+            res.failed[n] = r
+        else:
+            res.blocked.append(n)
+    own_run = t.run_id != t.row.run_id or layout.sweep is not None  # else the launch's run: the guard ends it
+    if res.failed:
+        stage, msg = next(iter(res.failed.items()))
+        call(sink, "set_tags", t.run_id, {"gdwm.failed_stage": stage, "gdwm.error": msg})
+        call(sink, "log_text", t.run_id, msg, "error.txt")
+        if own_run:
+            call(sink, "end_run", t.run_id, "FAILED")
+        if layout.sweep is not None:
+            console.print(f"[red]trial '{t.name}' failed at {stage}[/red]")
+        return res
+    call(sink, "set_tags", t.run_id, {f"gdwm.stage_run.{n}": r.run_id for n, r in res.results.items() if r.run_id})
+    call(sink, "set_tags", t.run_id, {f"gdwm.stage_key.{n}": r.key for n, r in res.results.items()})
+    call(sink, "set_tags", t.run_id, {"gdwm.seed": str(t.seed)})
+    res.metrics = report_evaluation(sink, t.run_id, t.pipe, res.results)
+    if layout.sweep is not None:
+        # the zoo versions this trial's stages registered carry its sweep, trial and key metrics
+        lineage = {"gdwm.sweep": layout.sweep.name, "gdwm.trial": t.run_id, "gdwm.row": t.label}
+        lineage |= metric_tags({k: v for k, v in res.metrics.items() if not k.startswith("count/")})
+        call(sink, "tag_versions", [r.key for r in res.results.values()], lineage)
+        console.print(f"[green]trial '{t.name}' finished[/green] ({len(res.metrics)} metrics)")
+    if own_run and not res.blocked:
+        call(sink, "end_run", t.run_id, "FINISHED")
+    return res
+
+
+def _finish_row(sink, layout: Layout, row: Row, results: list[TrialResult]) -> None:
+    """A row's aggregate over its finished seeds, on the row's run (when it is not its only trial's run)."""
+    if all(r.trial.run_id == row.run_id for r in results):
+        return
+    agg = aggregate([r.metrics for r in results if r.ok])
+    if agg:
+        call(sink, "log_metrics", row.run_id, agg)
+    if layout.sweep is not None:
+        call(sink, "end_run", row.run_id, "FINISHED" if any(r.ok for r in results) else "FAILED")
+
+
+# ---- gdwm run ----------------------------------------------------------------------------------------------------
+def run_pipeline(
+    cfg: DictConfig,
+    overrides: list[str] | None = None,
+    *,
+    seeds: list[int] | None = None,
+    seeds_key: str = "seeds",
+    dry_run: bool = False,
+    live: bool | None = None,
+) -> LaunchSummary:
+    """``gdwm run``: one row of trials, one per seed (``seeds=[...]``, else ``seeds``, else ``[seed]``).
+
+    ``overrides`` (what ``cfg`` was composed from) let each seed compose its own config; without them ``cfg`` is
+    the only trial."""
+    trial_seeds = resolve_seeds(cfg, seeds, seeds_key)
+    check_seed_overrides(cfg.get("seeds") is not None or seeds is not None, "gdwm run", overrides or [])
+    row = Row(0, "", {}, [], trial_seeds)
+    trials = [Trial(row, s) for s in trial_seeds]
+    one = trial_seeds == [int(cfg.seed)]
+    compose(trials, None if one else [o for o in overrides or [] if not o.startswith("--")], "gdwm run", cfg)
+    if dry_run or cfg.run.plan:
+        print_plan(trials)
+        return LaunchSummary(naive=sum(len(t.order) for t in trials))
+    cache = Cache(cfg.cache.uri)
+    if all(r.status == "cached" for t in trials for r in t.plan) and all(
+        cache.lookup(r.stage, r.key, verify=True) is not None for t in trials for r in t.plan
+    ):
+        # Nothing to run: no Ray, no tracking; a no-op re-run costs only the hash checks.
+        n = len({(r.stage, r.key) for t in trials for r in t.plan})
+        console.print(f"all {n} stage outputs cached and verified; nothing to run")
+        return LaunchSummary([TrialResult(t, _cached_results(t.plan, cache)) for t in trials])
+    pipe = trials[0].pipe
+    layout = Layout(None, f"run:{launch_key(pipe.name, trials)}", pipe.name)
+    show = cfg.run.live if live is None else live
+    return launch(cfg, [row], trials, layout, live=show, print_stages=False)
 
 
 def _cached_results(rows: list[PlanRow], cache: Cache) -> dict[str, StageResult]:
@@ -207,164 +507,49 @@ def _cached_results(rows: list[PlanRow], cache: Cache) -> dict[str, StageResult]
     return out
 
 
-def run_pipeline(cfg: DictConfig, dry_run: bool = False, live: bool | None = None) -> RunSummary:
-    pipe = load_pipeline(cfg, list(cfg.targets) or None)
-    order = pipe.ancestors(list(cfg.targets)) if cfg.targets else list(pipe.order)
-    # zoo:NAME@ALIAS -> zoo:NAME/VERSION in what the stages to run read: their keys name exact versions
-    cfg = pin_references(cfg, cfg.tracking.uri, [k for name in order for k in pipe.stages[name].config])
-    base_env = env_settings(cfg, ensure_data(cfg))
-    rows = plan(pipe, order, cfg, RunEnv(sink=None, parent_run_id=None, progress=None, **base_env))
-    if dry_run or cfg.run.plan:
-        print_plan(rows, RunEnv(sink=None, parent_run_id=None, progress=None, **base_env))
-        return RunSummary()
-    if all(r.status == "cached" for r in rows) and _verify_all(rows, env_cache=Cache(cfg.cache.uri)):
-        # Nothing to run: no Ray, no tracking; a no-op re-run costs only the hash checks.
-        console.print(f"all {len(rows)} stage outputs cached and verified; nothing to run")
-        return RunSummary(results=_cached_results(rows, Cache(cfg.cache.uri)))
-    summary = RunSummary()
-    with driver_session(cfg) as sink:
-        try:
-            run_key = _run_key(pipe.name, order, rows)
-            parent = _parent_run(sink, cfg, pipe, run_key)
-            summary.parent_run_id = parent
-            progress = ProgressActor.remote()
-            env = RunEnv(sink=sink, parent_run_id=parent, progress=progress, **base_env)
-            with RunGuard(sink, parent):
-                _execute_dag(pipe, order, cfg, env, summary, progress, live)
-                n_run = sum(not r.cached for r in summary.results.values())
-                call(sink, "log_metrics", parent, {"stages_run": n_run})
-                report_evaluation(sink, parent, pipe, summary.results)
-                if summary.failed:
-                    raise StageFailed(next(iter(summary.failed)), {None: next(iter(summary.failed.values()))})
-        except StageFailed:
-            pass  # the parent run is FAILED by the guard; the caller reports from the summary
-    return summary
-
-
-@contextlib.contextmanager
-def driver_session(cfg: DictConfig) -> Iterator:
-    """Ray (started here unless already up) and the tracking sink of one driver invocation (``gdwm run``, ``gdwm
-    sweep``); runs that dead drivers left RUNNING are reconciled first. Whatever escapes (Ctrl-C, SIGTERM, an error)
-    ends the runs this driver owns KILLED now, not at the next reconcile."""
-    started = init_ray(cfg)
-    sink, close = open_tracking(cfg.tracking)
-    try:
-        call(sink, "reconcile")
-        yield sink
-    except BaseException:
-        call(sink, "reconcile", AliveExcept(process_owner()))
-        raise
-    finally:
-        close()
-        if started:
-            ray.shutdown()
-
-
-def report_evaluation(sink, run_id: str, pipe: Pipeline, results: dict[str, StageResult]) -> dict[str, float]:
-    """The evaluation stages' metrics and per-sample tables onto the trial's run; returns the metrics."""
-    metrics = evaluation_metrics(pipe, results)
-    if metrics:
-        call(sink, "log_metrics", run_id, metrics)
-    log_evaluation_tables(sink, run_id, pipe, results)
-    return metrics
-
-
-def evaluation_metrics(pipe: Pipeline, results: dict[str, StageResult]) -> dict[str, float]:
-    """The numeric values evaluation stages returned (cached or not): the metrics of the trial's run."""
-    out: dict[str, float] = {}
-    for name, r in results.items():
-        if pipe.stages[name].evaluation:
-            out |= {k: float(v) for k, v in r.extra.items() if isinstance(v, int | float) and not isinstance(v, bool)}
-    return out
-
-
-def log_evaluation_tables(sink, run_id: str, pipe: Pipeline, results: dict[str, StageResult]) -> None:
-    """The evaluation stages' per-sample tables (``*.parquet``) as artifacts of the trial's run, ``<stage>/``."""
-    for name, r in results.items():
-        if pipe.stages[name].evaluation and r.path:
-            for table in sorted(Path(r.path).glob("*.parquet")):
-                call(sink, "log_artifact", run_id, str(table), name)
-
-
-def _parent_run(sink, cfg: DictConfig, pipe: Pipeline, run_key: str) -> str:
-    """Re-running the same command continues the same parent run."""
-    found = call(sink, "search_runs", f"tags.`gdwm.run_key` = '{run_key}'")
-    if found:
-        call(sink, "reopen_run", found[0]["run_id"])
-        return found[0]["run_id"]
-    tags = {"gdwm.kind": "run", "gdwm.run_key": run_key, "gdwm.pipeline": pipe.name}
-    run_id = call(sink, "create_run", f"run-{pipe.name}-{run_key[:8]}", tags, None)
-    call(sink, "log_params", run_id, OmegaConf.to_container(cfg, resolve=True))
-    return run_id
-
-
-def _execute_dag(pipe, order, cfg, env: RunEnv, summary: RunSummary, progress, live: bool | None) -> None:
-    refs: dict[str, ray.ObjectRef] = {}
-    t0 = time.time()
-    for name in order:
-        sd = pipe.stages[name]
-        fn = run_scene_stage if sd.per_scene else run_stage
-        ups = [refs[u] for u in sd.upstream]
-        refs[name] = fn.options(**task_options(sd, env)).remote(sd, subset(cfg, sd.config), env, *ups)
-    pending = {ref: name for name, ref in refs.items()}
-    show_live = cfg.run.live if live is None else live
-    show_live = show_live and console.is_terminal
-
-    def poll() -> None:
-        if _TERMINATED:
-            raise SystemExit(128 + _TERMINATED[0])
-        ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=0.5)
-        for ref in ready:
-            name = pending.pop(ref)
-            summary.wall[name] = time.time() - t0
-            try:
-                summary.results[name] = ray.get(ref)
-            except Exception as e:  # Ray re-raises a task's error as a subclass of both RayTaskError and it
-                root = _root_cause(e)
-                if isinstance(root, StageFailed) and root.stage != name:
-                    summary.blocked.append(name)
-                    env.progress.status.remote(name, None, "blocked", message=f"upstream {root.stage} failed")
-                elif isinstance(root, StageFailed):
-                    summary.failed[name] = StageFailed.__str__(root)
-                else:
-                    summary.failed[name] = f"stage '{name}' failed: {root!r}"
-
-    if show_live:
-        with Live(render([], order), console=console, refresh_per_second=4) as view:
-            while pending:
-                poll()
-                view.update(render(ray.get(progress.snapshot.remote()), order))
-    else:
-        while pending:
-            poll()
-    print_summary(summary, order, ray.get(progress.snapshot.remote()))
-
-
-def _root_cause(e: BaseException) -> BaseException:
-    while isinstance(e, ray.exceptions.RayTaskError) and e.cause is not None and e.cause is not e:
-        e = e.cause
-    return e
-
-
-def print_summary(summary: RunSummary, order: list[str], items) -> None:
-    t = Table(title="run summary", header_style="bold")
-    for col in ("stage", "status", "wall s", "cache key", "MLflow run"):
+def print_plan(trials: list[Trial]) -> None:
+    """Stage x scene: cached / to run (``shared`` where an earlier seed's row already runs the same key)."""
+    several = len(trials) > 1
+    t = Table(title="plan", header_style="bold")
+    for col in ("seed",) * several + ("stage", "scene", "status", "key", "resources"):
         t.add_column(col)
-    heads = {i.stage: i for i in items if i.scene is None}
-    for name in order:
-        r = summary.results.get(name)
-        if r is not None:
-            status = "cached" if r.cached else "done"
-            if r.failed:
-                status += f" ({len(r.failed)} scene(s) skipped)"
-        elif name in summary.failed:
-            status = "failed"
-        else:
-            status = "blocked"
-        wall = heads[name].wall if name in heads and heads[name].wall is not None else None
-        key = r.key[:12] if r else (heads[name].key[:12] if name in heads else "")
-        run_id = (r.run_id or "") if r else (heads[name].run_id if name in heads else "")
-        t.add_row(name, status, f"{wall:.1f}" if wall is not None else "", key, run_id)
+    seen: set[tuple[str, str]] = set()
+    counts = {"cached": 0, "to run": 0, "shared": 0}
+    for trial in trials:
+        env = trial.env()
+        for r in trial.plan:
+            res = env.resources.get(r.resources, {})
+            cpus, gpus, n = res.get("num_cpus", 0), res.get("num_gpus", 0), res.get("num_workers", 1)
+            desc = f"{r.resources}: {cpus:g} CPU, {gpus:g} GPU, " + (f"x{n}" if n else "in-process")
+            status = "shared" if r.status == "to run" and (r.stage, r.key) in seen else r.status
+            seen.add((r.stage, r.key))
+            counts[status] += 1
+            t.add_row(*(str(trial.seed),) * several, r.stage, r.scene or "-", status, r.key[:12], desc)
     console.print(t)
-    for msg in summary.failed.values():
-        console.print(f"[red]{msg}[/red]", markup=True)
+    console.print(", ".join(f"{n} {s}" for s, n in counts.items() if n or s != "shared"))
+
+
+def _print_run_summaries(summary: LaunchSummary, progress) -> None:
+    items = ray.get(progress.snapshot.remote()) if progress is not None else []
+    heads = {i.stage: i for i in items if i.scene is None}
+    for res in summary.trials:
+        title = "run summary" + (f" (seed {res.trial.seed})" if len(summary.trials) > 1 else "")
+        t = Table(title=title, header_style="bold")
+        for col in ("stage", "status", "wall s", "cache key", "MLflow run"):
+            t.add_column(col)
+        for name in res.trial.order:
+            r = res.results.get(name)
+            if r is not None:
+                status = "cached" if r.cached else "done"
+                if r.failed:
+                    status += f" ({len(r.failed)} scene(s) skipped)"
+            else:
+                status = "failed" if name in res.failed else "blocked"
+            head = heads.get(name)
+            wall = head.wall if head is not None else None
+            key = r.key[:12] if r else res.trial.keys.get(name, "")[:12]
+            run_id = (r.run_id or "") if r else (head.run_id if head is not None else "")
+            t.add_row(name, status, f"{wall:.1f}" if wall is not None else "", key, run_id)
+        console.print(t)
+        for msg in res.failed.values():
+            console.print(f"[red]{msg}[/red]", markup=True)

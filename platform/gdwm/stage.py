@@ -39,6 +39,16 @@ class StageDef:
     setup: Callable[[Mapping], Any] | None = None
     evaluation: bool = False
     """Its returned numeric values are the trial's evaluation metrics (copied onto the trial's run)."""
+    seeded: bool = False
+    """It consumes the trial seed (``seed=``/``seeds=``): the seed enters its config (key ``seed``), its cache key and
+    its MLflow params, and arrives as ``ctx.seed``. Seed-free stages (``ctx.seed`` is None) are shared by every seed
+    of a row."""
+    samples: str | None = None
+    """Evaluation stages: a Parquet file of its output with one row per held-out sample (a ``sample_id`` column),
+    what ``score`` recomputes the metrics from; ``gdwm compare`` resamples it for intervals and significance."""
+    score: Callable[[Any], Mapping[str, float]] | None = None
+    """``score(table: pyarrow.Table) -> metrics``: the stage's metrics of any subset of ``samples`` (rows may repeat;
+    row order is ranking order). A module-level function, so compare and regress can import it by name."""
 
     def __post_init__(self) -> None:
         if self.resources not in RESOURCE_CLASSES:
@@ -47,6 +57,8 @@ class StageDef:
             )
         if not self.version:
             raise ValueError(f"stage '{self.name}': version must be non-empty")
+        if (self.samples is None) != (self.score is None) or (self.samples and not self.evaluation):
+            raise ValueError(f"stage '{self.name}': samples= and score= go together, on an evaluation stage")
 
     def __reduce__(self):
         # Ship by reference (module + attribute), so Ray workers import the real stage, not a pickled copy.
@@ -72,11 +84,15 @@ def stage(
     resources: str = "cpu",
     setup: Callable[[Mapping], Any] | None = None,
     evaluation: bool = False,
+    seeded: bool = False,
+    samples: str | None = None,
+    score: Callable[[Any], Mapping[str, float]] | None = None,
 ) -> Callable[[Callable[[StageContext], Any]], StageDef]:
     """Declare a stage; the decorated name becomes its StageDef (point ``_target_`` at it)."""
 
     def wrap(fn: Callable[[StageContext], Any]) -> StageDef:
-        sd = StageDef(name, str(version), fn, tuple(config), tuple(upstream), per_scene, resources, setup, evaluation)
+        sd = StageDef(name, str(version), fn, tuple(config), tuple(upstream), per_scene, resources, setup, evaluation,
+                      seeded, samples, score)  # fmt: skip
         _REGISTRY[(fn.__module__, fn.__name__)] = sd
         return sd
 
@@ -128,7 +144,11 @@ class StageContext:
     scene: str | None = None
     state: Any = None
     progress_sink: Any = None
-    seed: int = 0
+    seed: int | None = None
+    """The trial seed for a ``seeded`` stage (derive every random stream of the trial from it); None otherwise."""
+    deterministic: bool | None = None
+    """``run.deterministic``: null = deterministic kernels and a fixed thread count without CUDA (see
+    ``gdwm.determinism``); training loops started with ``train`` apply the same on every worker."""
     train_settings: Mapping[str, Any] = field(default_factory=dict)
     tracking_uri: str | None = None
     """MLflow store of the run (its model registry is the zoo ``zoo_path`` reads)."""

@@ -30,6 +30,8 @@ import torch
 from ray.train import Checkpoint, FailureConfig, RunConfig, ScalingConfig
 from ray.train.torch import TorchTrainer
 
+from gdwm.determinism import stage_start
+
 STATE_FILE = "state.pt"
 
 
@@ -114,6 +116,8 @@ def _persist_local(src: Path, root: Path, step: int) -> Path:
 
 def _worker_entry(payload: dict) -> None:
     loop: Callable[[TrainSession], None] = payload["loop"]
+    # a worker process of Ray Train's group starts from the same state as the stage task did (gdwm.determinism)
+    stage_start(payload["seed"], payload["num_cpus"], payload["deterministic"])
     if payload.get("tracker") is not None and ray.train.get_context().get_world_rank() == 0:
         payload["tracker"].log_text(f"world_size={ray.train.get_context().get_world_size()}", "train/world.txt")
     loop(TrainSession(payload["config"], payload["tracker"], payload["local_ckpt_dir"], payload["checkpoint_every"]))
@@ -133,6 +137,9 @@ def fit(ctx, loop: Callable[[TrainSession], None], loop_config: dict) -> TrainRe
         "tracker": ctx.tracker,
         "local_ckpt_dir": str(ctx.checkpoint_dir / "steps"),
         "checkpoint_every": int(settings.get("checkpoint_every", 1)),
+        "seed": ctx.seed or 0,
+        "num_cpus": float(res.get("num_cpus", 1)),
+        "deterministic": ctx.deterministic,
     }
     scaling = ScalingConfig(
         num_workers=workers,

@@ -9,12 +9,15 @@ GDWM_TEST_BLOCK    "stage" or "stage:step=N" — wait until GDWM_TEST_DIR/releas
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import time
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 import torch
 
 from gdwm.stage import StageContext, stage
@@ -102,26 +105,46 @@ def _train_stage(ctx: StageContext, steps: int, target: float) -> None:
     torch.save({"w": result.state["w"]}, ctx.out_dir / "weights.pt")
 
 
-@stage("tokenizer", "1", config=["stage.toy_tokenizer"], upstream=["distill"], resources="train")
+def seed_noise(seed: int) -> float:
+    """What a seed adds to every toy lora step: 0 for seed 0 (the numbers the tests were written with), about
+    +-0.5 for others, so seeds of one row spread like a real trial's."""
+    return 0.5 * math.sin(seed)
+
+
+@stage("tokenizer", "1", config=["stage.toy_tokenizer"], upstream=["distill"], resources="train", seeded=True)
 def tokenizer(ctx: StageContext) -> None:
     n = sum(np.load(p / "features.npy").size for p in ctx.upstream["distill"].scenes.values())
     _train_stage(ctx, ctx.cfg("stage.toy_tokenizer")["steps"], float(n % 5))
 
 
-@stage("lora", "1", config=["stage.toy_lora"], upstream=["tokenizer"], resources="train")
+@stage("lora", "1", config=["stage.toy_lora"], upstream=["tokenizer"], resources="train", seeded=True)
 def lora(ctx: StageContext) -> None:
     if ctx.cfg("stage.toy_lora")["rank"] < 0:
         raise ValueError(f"stage.toy_lora.rank must be >= 0, got {ctx.cfg('stage.toy_lora')['rank']}")
-    _train_stage(ctx, ctx.cfg("stage.toy_lora")["steps"], float(ctx.cfg("stage.toy_lora")["rank"]))
+    rank = float(ctx.cfg("stage.toy_lora")["rank"])
+    _train_stage(ctx, ctx.cfg("stage.toy_lora")["steps"], rank + seed_noise(ctx.seed))
 
 
-@stage("evaluate_qa", "1", config=["stage.toy_evaluate_qa"], upstream=["lora"], resources="eval", evaluation=True)
+OFFSETS = [-2.0, -1.0, 0.0, 1.0, 2.0] * 8
+"""Per-sample deviations of the toy's held-out samples from the model's accuracy: they sum to exactly 0."""
+
+
+def score_toy(table: pa.Table) -> dict[str, float]:
+    """The toy's metrics of any subset of its per-sample table (the scorer gdwm compare and regress resample)."""
+    acc = float(np.mean(table["value"].to_numpy()))
+    return {"acc": acc, "nuinteract/plan_acc": acc, "nuinstruct/mae": 100 / (1 + acc)}
+
+
+@stage("evaluate_qa", "1", config=["stage.toy_evaluate_qa"], upstream=["lora"], resources="eval", evaluation=True,
+       samples="predictions.parquet", score=score_toy)  # fmt: skip
 def evaluate_qa(ctx: StageContext) -> dict:
     _record(ctx)
     _inject(ctx)
     w = torch.load(ctx.upstream["lora"].path / "weights.pt", weights_only=True)["w"]
     acc = float(w.sum())
-    metrics = {"acc": acc, "nuinteract/plan_acc": acc, "nuinstruct/mae": 100 / (1 + acc)}
+    table = pa.table({"sample_id": [f"s{i:02d}" for i in range(len(OFFSETS))], "value": [acc + o for o in OFFSETS]})
+    pq.write_table(table, ctx.out_dir / "predictions.parquet")
+    metrics = score_toy(table)
     ctx.tracker.log_metrics(metrics)
     (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics))
     return metrics

@@ -1,4 +1,5 @@
-"""``gdwm compare``: rows from MLflow, direction-aware best/second marks, the four text formats, the HTML report."""
+"""``gdwm compare`` on a store in the sweep layout (row runs with a trial per seed): selection, cells recomputed
+from the trials, marks earned by Welch's t-test over seeds, the four text formats, the HTML report, the CLI."""
 
 import csv
 import io
@@ -6,16 +7,21 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from rich.console import Console
+from scipy import stats
 
-from gdwm.compare.layout import ColumnConfig, Direction, LayoutConfig, default_direction, resolve_columns
+from gdwm.compare.command import settings
+from gdwm.compare.layout import ColumnConfig, CompareArgs, Direction, LayoutConfig, default_direction, resolve_columns
 from gdwm.compare.render import tex_escape, to_csv, to_latex, to_markdown, to_rich
-from gdwm.compare.report import html_report, improvement
-from gdwm.compare.runs import SelectionError, select, training_curves
-from gdwm.compare.table import BEST, SECOND, build_table, mark_column, normalise
+from gdwm.compare.report import error_bar, html_report, improvement
+from gdwm.compare.runs import Row, SelectionError, Trial, select, training_curves
+from gdwm.compare.samples import load_samples, scorer
+from gdwm.compare.stats import Settings, rank_marks
+from gdwm.compare.table import BEST, SECOND, build_table, normalise
 from gdwm.config import load_config
-from tests.gdwm.compare_runs import LOSS, TRIALS, log_store
+from tests.gdwm.compare_runs import CORRECT, LOSS, N_SAMPLES, ROWS, log_store
 
 LAYOUT = LayoutConfig(
     name="mixed",
@@ -25,7 +31,13 @@ LAYOUT = LayoutConfig(
         "nuinteract/vg2d_map": ColumnConfig(header="mAP", group="2D VG"),
         "nuinstruct/mae": ColumnConfig(header="MAE"),
         "nuinteract/avg": ColumnConfig(header="Avg."),
+        "nuinteract/plan_acc": ColumnConfig(header="Acc", group="Plan"),
     },
+)
+LEGEND = (
+    "Bold: best; underlined: second. Rows whose difference is not significant share a mark (Welch's t-test over "
+    "seeds, α = 0.05). Cells: mean ± std over n seeds; one seed without per-sample data: the value alone. "
+    "(n=k): k of 3 seeds finished. Cells of one seed take no mark."
 )
 
 
@@ -61,58 +73,114 @@ def test_direction_defaults_from_the_name(metric, direction):
     assert default_direction(metric) == direction
 
 
-def test_mark_column_ties_share_and_missing_is_excluded():
-    # 3.0 and 3.004 print the same at 2 decimals: both best; 2.0 is second; None is never marked.
-    assert mark_column([1.0, None, 3.0, 3.004, 2.0], Direction.higher, 2) == [None, None, BEST, BEST, SECOND]
-    assert mark_column([1.0, None, 3.0, 2.0], Direction.lower, 2) == [BEST, None, None, SECOND]
-    assert mark_column([None, float("nan")], Direction.lower, 2) == [None, None]
+def test_rank_marks_share_what_the_test_cannot_tell_apart():
+    means = {0: 3.0, 1: 1.0, 2: 2.9, 3: 2.0}
+
+    def apart(a: int, b: int) -> bool:  # a stand-in test: differences above 0.5 are significant
+        return abs(means[a] - means[b]) > 0.5
+
+    assert rank_marks(means, Direction.higher, apart) == {0: BEST, 2: BEST, 3: SECOND}
+    assert rank_marks(means, Direction.lower, apart) == {1: BEST, 3: SECOND}  # 3 vs 2.9 and 3.0: apart
+    assert rank_marks({0: 0.001, 1: 0.0, 2: 0.004}, Direction.higher, apart) == {}  # all print 0.00
+    assert rank_marks({0: 5.0, 1: 1.0}, Direction.higher, lambda a, b: False) == {0: BEST, 1: BEST}
 
 
-def test_sweep_selects_the_latest_sweeps_trials_in_trial_order(store):
+def test_sweep_selects_the_latest_sweeps_rows_with_their_trials(store):
     sel = select(store.backend(), sweep="abl")
-    assert [r.label for r in sel.rows] == list(TRIALS)  # not the older sweep's "old" trial
+    assert [r.label for r in sel.rows] == list(ROWS)  # not the older sweep's "old" trial
     assert sel.sweep_run_id == store.sweep_id and sel.name == "abl"
+    assert [r.run_id for r in sel.rows] == [store.rows[label] for label in ROWS]
     assert sel.rows[0].factors == {"Coarse Selection": "Voxel Top-K", "Alignment": "none"}
-    assert [r.failed for r in sel.rows] == [False] * 4 + [True]
-    assert sel.rows[4].note == "failed at lora: RuntimeError: CUDA out of memory"
+    assert [r.planned for r in sel.rows] == [3] * 6
+    assert [[t.seed for t in r.trials] for r in sel.rows] == [[0, 1, 2]] * 6
+    assert [[t.seed for t in r.counted] for r in sel.rows] == [[0, 1, 2]] * 3 + [[0, 1], [0, 1, 2], [0]]
+    assert [t.run_id for t in sel.rows[3].trials] == [store.trials["D"][s] for s in (0, 1, 2)]
+    assert [r.failed for r in sel.rows] == [False] * 4 + [True, False]
+    assert [r.note for r in sel.rows] == [""] * 4 + ["failed at lora: RuntimeError: CUDA out of memory", ""]
 
 
-def test_marks_are_direction_aware_and_skip_missing_and_failed_rows(table):
+def test_cells_come_from_the_trials_not_the_rows_aggregate(table):
+    a = table.cell(0, "nuinteract/avg")
+    assert (a.mean, a.std, a.n, a.interval) == (
+        pytest.approx(np.mean([59.0, 59.5, 59.2])),
+        pytest.approx(np.std([59.0, 59.5, 59.2], ddof=1)),
+        3,
+        "t",
+    )
+    low, high = stats.t.interval(0.95, 2, loc=a.mean, scale=a.std / np.sqrt(3))
+    assert (a.ci_low, a.ci_high) == (pytest.approx(low), pytest.approx(high))
+    d = table.cell(3, "nuinteract/avg")  # D: 2 of 3 seeds finished
+    assert (d.mean, d.n) == (pytest.approx(62.75), 2)
+    f = table.cell(5, "nuinteract/avg")  # F: 1 of 3, no per-sample data: no std, no interval
+    assert (f.mean, f.n, f.std, f.ci_low, f.interval) == (65.0, 1, None, None, None)
+    assert all(c.mean != -1.0 for c in table.cells.values())  # the row runs' stale aggregate is never read
+    assert table.legend == LEGEND
+
+
+def test_marks_are_earned_direction_aware_and_skip_one_seed_missing_and_failed_rows(table):
     label = {i: r.label for i, r in enumerate(table.rows)}
     marks = {(label[i], m.split("/")[-1]): mark for (i, m), mark in table.marks.items()}
     assert marks == {
-        ("C", "rdp_bleu"): BEST,  # E (failed, 99.0) takes no mark
-        ("B", "rdp_bleu"): SECOND,
-        ("D", "rdp_bleu"): SECOND,  # tie at 69.97
+        ("C", "rdp_bleu"): BEST,  # E (failed, 99.0) and F (one seed, 75.0) take no mark
+        ("B", "rdp_bleu"): BEST,  # 69.77 vs 70.17: Welch p = 0.55
+        ("D", "rdp_bleu"): SECOND,
         ("B", "vg2d_map"): BEST,
-        ("D", "vg2d_map"): SECOND,  # C missing
-        ("B", "mae"): BEST,  # lower is better; A and C tie at 3.08 behind D
-        ("D", "mae"): SECOND,
+        ("D", "vg2d_map"): BEST,  # equal means (C missing)
+        ("A", "vg2d_map"): SECOND,
+        ("B", "mae"): BEST,  # lower is better
+        ("D", "mae"): SECOND,  # A and C: significantly worse than D
         ("D", "avg"): BEST,
         ("C", "avg"): SECOND,
-    }
-    assert table.fmt(table.value(2, "nuinteract/vg2d_map")) == "–"
+        ("B", "avg"): SECOND,  # 61.23 vs 61.43: p = 0.32
+    }  # plan_acc is 0.00 everywhere: no marks
+    assert table.text(3, "nuinteract/vg2d_map") == "48.50 ± 1.41 (n=2)"
+    assert table.text(2, "nuinteract/vg2d_map") == "–"
+    assert table.text(4, "nuinteract/rdp_bleu") == "99.00"  # a failed row's logged value, without uncertainty
     assert table.factors == ["Coarse Selection", "Alignment"]
 
 
 def test_markdown(table):
     lines = to_markdown(table).splitlines()
-    assert lines[2] == ("| row | Coarse Selection | Alignment | RD&P BLEU ↑ | 2D VG mAP ↑ | MAE ↓ | Avg. ↑ | note |")
-    assert lines[3] == "| --- | --- | --- | ---: | ---: | ---: | ---: | --- |"
-    assert lines[5] == "| B | Voxel Top-K | KL | <u>69.97</u> | **48.59** | **2.41** | 61.24 |  |"
-    assert lines[6] == "| C | Driving-Aware | KL | **70.19** | – | 3.08 | <u>61.37</u> |  |"
-    assert lines[8] == (
-        "| E | Driving-Aware | none | 99.00 | – | – | – | failed at lora: RuntimeError: CUDA out of memory |"
+    assert lines[2] == (
+        "| row | Coarse Selection | Alignment | RD&P BLEU ↑ | 2D VG mAP ↑ | MAE ↓ | Avg. ↑ | Plan Acc ↑ | note |"
     )
+    assert lines[3] == "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | --- |"
+    assert lines[5] == (
+        "| B | Voxel Top-K | KL | **69.77 ± 0.75** | **48.50 ± 0.50** | **2.45 ± 0.05** | <u>61.23 ± 0.25</u> "
+        "| 0.00 ± 0.00 |  |"
+    )
+    assert lines[7] == (
+        "| D | Driving-Aware | KL & 50%_x | <u>65.30 ± 0.42 (n=2)</u> | **48.50 ± 1.41 (n=2)** | "
+        "<u>2.71 ± 0.01 (n=2)</u> | **62.75 ± 0.07 (n=2)** | 0.00 ± 0.00 (n=2) |  |"
+    )
+    assert lines[8] == (
+        "| E | Driving-Aware | none | 99.00 | – | – | – | – | failed at lora: RuntimeError: CUDA out of memory |"
+    )
+    assert lines[9] == (
+        "| F | Voxel Top-K | KL & 50%_x | 75.00 (n=1) | 50.00 (n=1) | 2.00 (n=1) | 65.00 (n=1) | 0.00 (n=1) |  |"
+    )
+    assert lines[10:] == ["", LEGEND]
 
 
-def test_csv_plain_numbers_and_empty_for_missing(table, store):
-    rows = list(csv.DictReader(io.StringIO(to_csv(table))))
-    assert [r["row"] for r in rows] == list(TRIALS)
+def test_csv_mean_std_n_ci_mark_per_metric_and_the_legend(table, store):
+    text = to_csv(table)
+    assert text.splitlines()[-1] == f"# {LEGEND}"
+    rows = list(csv.DictReader(io.StringIO(text), restkey="rest"))[:-1]
+    assert [r["row"] for r in rows] == list(ROWS)
+    stats_columns = ("", "/std", "/n", "/ci_low", "/ci_high", "/mark")
+    assert list(rows[0])[5:11] == [f"nuinteract/rdp_bleu{s}" for s in stats_columns]
     c = rows[2]
-    assert c["run_id"] == store.trials["C"] and c["status"] == "FINISHED"
-    assert (c["nuinteract/rdp_bleu"], c["nuinteract/vg2d_map"], c["nuinstruct/mae"]) == ("70.19", "", "3.08")
-    assert rows[3]["Alignment"] == "KL & 50%_x"
+    assert c["run_id"] == store.rows["C"] and c["status"] == "FINISHED"
+    assert float(c["nuinteract/rdp_bleu"]) == pytest.approx(np.mean([70.2, 69.4, 70.9]), abs=1e-12)
+    assert float(c["nuinteract/rdp_bleu/std"]) == pytest.approx(np.std([70.2, 69.4, 70.9], ddof=1), abs=1e-12)
+    assert (c["nuinteract/rdp_bleu/n"], c["nuinteract/rdp_bleu/mark"], c["nuinteract/avg/mark"]) == ("3", BEST, SECOND)
+    assert [c[f"nuinteract/vg2d_map{s}"] for s in stats_columns] == [""] * 6
+    d = rows[3]
+    assert (d["Alignment"], d["nuinteract/avg"], d["nuinteract/avg/n"]) == ("KL & 50%_x", "62.75", "2")
+    f = rows[5]
+    assert [f[f"nuinteract/avg{s}"] for s in stats_columns] == [
+        "65.0", "", "1", "", "", ""
+    ]  # fmt: skip
     assert rows[4]["status"] == "FAILED" and rows[4]["note"].startswith("failed at lora")
 
 
@@ -127,21 +195,26 @@ def test_latex_is_structurally_valid_booktabs(table):
     for rule in (r"\toprule", r"\midrule", r"\bottomrule"):
         assert tex.count(rule) == 1, rule
     ncols = len(re.search(r"\\begin\{tabular\}\{(\w+)\}", tex).group(1))
-    assert ncols == 1 + 2 + 4 + 1  # row, two factors, four metrics, note
+    assert ncols == 1 + 2 + 5 + 1  # row, two factors, five metrics, note
     rows = [line for line in tex.splitlines() if line.endswith(r"\\")]
-    assert len(rows) == 2 + 5  # group header, header, five rows
+    assert len(rows) == 2 + 6  # group header, header, six rows
     for line in rows:
         spans = sum(int(n) for n in re.findall(r"\\multicolumn\{(\d+)\}", line))
         cells = _unescaped(line, "&") + 1
         assert cells - len(re.findall(r"\\multicolumn", line)) + spans == ncols, line
     assert r"\multicolumn{1}{c}{RD\&P} & \multicolumn{1}{c}{2D VG}" in tex
-    assert r"\cmidrule(lr){4-4}\cmidrule(lr){5-5}" in tex
+    assert r"\cmidrule(lr){4-4}\cmidrule(lr){5-5}\cmidrule(lr){8-8}" in tex
     assert r"MAE $\downarrow$ & Avg. $\uparrow$" in tex
     assert (
-        r"D & Driving-Aware & KL \& 50\%\_x & \underline{69.97} & \underline{48.10} & \underline{2.90} & \textbf{62.71}"
-        in tex
+        r"D & Driving-Aware & KL \& 50\%\_x & \underline{65.30{\scriptsize$\pm$0.42}{\scriptsize~(n=2)}} & "
+        r"\textbf{48.50{\scriptsize$\pm$1.41}{\scriptsize~(n=2)}}" in tex
     )
-    assert r"C & Driving-Aware & KL & \textbf{70.19} & -- & 3.08 & \underline{61.37} &  \\" in tex
+    assert r"C & Driving-Aware & KL & \textbf{70.17{\scriptsize$\pm$0.75}} & -- & 3.05{\scriptsize$\pm$0.05} & " in tex
+    assert r"F & Voxel Top-K & KL \& 50\%\_x & 75.00{\scriptsize~(n=1)} & " in tex
+    lines = tex.splitlines()
+    assert lines[1] == f"% Legend: {LEGEND}"
+    assert lines[-1] == "% \\caption{Mixed. " + tex_escape(LEGEND) + "}"
+    assert r"Welch's t-test over seeds, $\alpha$ = 0.05). Cells: mean $\pm$ std over n seeds" in lines[-1]
 
 
 def test_tex_escape_special_characters():
@@ -150,14 +223,22 @@ def test_tex_escape_special_characters():
     )
 
 
-def test_rich_table_bolds_best_and_underlines_second(table):
+def test_rich_table_bolds_best_and_underlines_second_with_the_legend(table):
     buf = io.StringIO()
     Console(file=buf, force_terminal=True, color_system="standard", width=250).print(to_rich(table))
     out = buf.getvalue()
-    styled = re.findall(r"\x1b\[(\d)m *([\d.]+)\x1b\[0m", out)  # (1 = bold | 4 = underline | 2 = dim, value)
-    assert sorted(v for s, v in styled if s == "1") == ["2.41", "48.59", "62.71", "70.19"]
-    assert sorted(v for s, v in styled if s == "4") == ["2.90", "48.10", "61.37", "69.97", "69.97"]
+    styled = re.findall(
+        r"\x1b\[(\d)m *([\d.]+(?: ± [\d.]+)?(?: \(n=\d\))?)\x1b\[0m", out
+    )  # (1 bold | 4 underline | 2 dim)
+    assert sorted(v for s, v in styled if s == "1") == [
+        "2.45 ± 0.05", "48.50 ± 0.50", "48.50 ± 1.41 (n=2)", "62.75 ± 0.07 (n=2)", "69.77 ± 0.75", "70.17 ± 0.75"
+    ]  # fmt: skip
+    assert sorted(v for s, v in styled if s == "4") == [
+        "2.71 ± 0.01 (n=2)", "35.00 ± 1.00", "61.23 ± 0.25", "61.43 ± 0.15", "65.30 ± 0.42 (n=2)"
+    ]  # fmt: skip
     assert ("2", "99.00") in styled  # the failed row is dimmed, not marked
+    plain = re.sub(r"\x1b\[[\d;]*m", "", out)
+    assert " ".join(plain.split()).endswith(LEGEND)
 
 
 def test_radar_normalisation_is_fig1s():
@@ -190,11 +271,35 @@ def test_generation_layout_discovers_every_target(tmp_path):
 def test_factors_from_params_for_plain_runs(store):
     rows = select(store.backend(), runs=[store.plain_run], factor_params=["model.selector.name"]).rows
     assert [(r.label, r.factors) for r in rows] == [("run-gaussiandwm_pp", {"model.selector.name": "driving_aware"})]
+    assert [(t.run_id, t.seed) for t in rows[0].trials] == [(store.plain_run, 0)]  # one seed: its own trial
 
 
-def test_filter_keeps_only_comparable_runs(store):
+def test_runs_by_id_a_row_brings_its_trials_a_trial_stands_alone(store):
+    rows = select(store.backend(), runs=[store.rows["D"], store.trials["B"][1], store.old_trial]).rows
+    assert [(r.label, r.planned, [t.seed for t in r.counted]) for r in rows] == [
+        ("D", 3, [0, 1]),
+        ("B", 1, [1]),
+        ("old", 1, [None]),  # a trial from before seeds
+    ]
+    assert rows[1].trials[0].run_id == store.trials["B"][1]
+
+
+def test_a_row_fails_when_all_its_trials_do():
+    error = {"gdwm.failed_stage": "lora", "gdwm.error": "OOM\ntrace"}
+    ok, bad = Trial("t0", 0, "FINISHED", {"m": 1.0}), Trial("t1", 1, "FAILED", {}, error)
+    # a multi-seed `gdwm run` ends FAILED when a seed failed: its finished seeds still count
+    run = Row("r", "run", "FAILED", "0", {}, trials=[ok, bad], planned=2)
+    assert (run.failed, run.note, [t.seed for t in run.counted]) == (False, "", [0])
+    lost = Row("r", "run", "FAILED", "0", {}, trials=[bad], planned=2)
+    assert (lost.failed, lost.note, lost.counted) == (True, "failed at lora: OOM", [bad])
+    alone = Row("t1", "seed", "FAILED", "0", {}, tags=error, trials=[Trial("t1", 1, "FAILED", {}, error)])
+    assert (alone.failed, alone.note) == (True, "failed at lora: OOM")
+
+
+def test_filter_keeps_rows_plain_runs_and_old_trials_under_a_sweep(store):
     rows = select(store.backend(), filter_string="attributes.status = 'FINISHED'").rows
-    assert {r.label for r in rows} == {"old", "A", "B", "C", "D", "run-gaussiandwm_pp"}  # no sweep, no stage run
+    # no sweep, no stage run, no trial of a row (its row stands for it); E's row FAILED
+    assert [r.label for r in rows] == ["old", "A", "B", "C", "D", "F", "run-gaussiandwm_pp"]
 
 
 @pytest.mark.parametrize(
@@ -213,47 +318,101 @@ def test_selection_errors_name_the_selector(store, kw, message):
     assert str(e.value).startswith(message)
 
 
-def test_training_curves_from_the_trials_stage_runs(store):
+def test_load_samples_reads_the_predictions_and_names_what_it_cannot_read(store, tmp_path):
+    b = store.backend()
+    row = select(b, runs=[store.plain_run]).rows[0]
+    assert load_samples(b, [row], tmp_path) == []
+    qa = row.trials[0].samples["evaluate_qa"]
+    assert qa.ids[:2] == ["val-000", "val-001"] and len(qa.ids) == N_SAMPLES
+    assert qa.table.column("correct").to_pylist() == CORRECT.tolist()
+    assert qa.scorer(qa.table) == {"nuinteract/avg": pytest.approx(100 * CORRECT.mean())}
+    tags = {"gdwm.samples.evaluate_qa": "evaluate_qa/predictions.parquet", "gdwm.scorer.evaluate_qa": "no_such_mod:f"}
+    broken = Row(store.plain_run, "X", "FINISHED", "0", {}, trials=[Trial(store.plain_run, 2, "FINISHED", {}, tags)])
+    assert load_samples(b, [broken], tmp_path) == [
+        f"row X seed 2 (run {store.plain_run}), gdwm.samples.evaluate_qa=evaluate_qa/predictions.parquet: "
+        "ModuleNotFoundError: No module named 'no_such_mod'"
+    ]
+    assert broken.trials[0].samples == {}
+
+
+def test_scorer_is_imported_by_the_name_its_tag_gives():
+    from tests.gdwm.compare_runs import accuracy
+
+    assert scorer("tests.gdwm.compare_runs:accuracy") is scorer("tests.gdwm.compare_runs.accuracy") is accuracy
+    with pytest.raises(ValueError, match=r"^scorer 'accuracy' is not <module>:<function>$"):
+        scorer("accuracy")
+    with pytest.raises(ValueError, match=r"^scorer 'tests.gdwm.compare_runs:nope': module tests.gdwm.compare_runs "):
+        scorer("tests.gdwm.compare_runs:nope")
+
+
+def test_settings_name_the_argument_out_of_range():
+    assert settings(CompareArgs(alpha=0.01, resamples=50, stats_seed=3)) == Settings(0.01, 0.95, 50, 3)
+    with pytest.raises(ValueError, match=r"^args\.alpha=1\.5: must lie strictly between 0 and 1$"):
+        settings(CompareArgs(alpha=1.5))
+    with pytest.raises(ValueError, match=r"^args\.resamples=1: the bootstrap needs at least 2 resamples$"):
+        settings(CompareArgs(resamples=1))
+    with pytest.raises(ValueError, match=r"^args\.bootstrap_method=bca: must be one of BCa, percentile, basic$"):
+        settings(CompareArgs(bootstrap_method="bca"))
+
+
+def test_training_curves_from_the_first_trials_stage_runs(store):
     rows = select(store.backend(), sweep="abl").rows
     assert training_curves(store.backend(), rows[0]) == {"lora/loss": list(enumerate(LOSS))}  # no system/*, no 1-step
     assert training_curves(store.backend(), rows[1]) == {}
 
 
-def test_html_report_links_runs_and_says_when_there_is_no_history(table, store):
+def test_html_report_cells_error_bars_legend_and_links(table, store):
     html = html_report(table, 0, {}, "http://mlflow.example:5000/", "args.sweep=abl", store.uri)
-    for run_id in store.trials.values():
+    for run_id in store.rows.values():
         assert f'href="http://mlflow.example:5000/#/experiments/{store.experiment_id}/runs/{run_id}"' in html
     assert "No training history found" in html
     assert html.count("<img") == 3  # radar, per-metric bars, delta bars
     assert html.count('src="data:image/png;base64,') == 3
-    assert "<strong>70.19</strong>" in html and html.count("<u>69.97</u>") == 2
+    assert "<strong>70.17 ± 0.75</strong>" in html and "<u>65.30 ± 0.42 (n=2)</u>" in html
     assert '<th colspan="1">RD&amp;P</th>' in html
-    # deltas vs A: B's BLEU +1.19 is better, its MAE -0.67 is better (lower), C's missing 2D mAP is –
+    assert '<p class="legend" id="legend">Bold: best; underlined: second.' in html
+    assert "Welch&#x27;s t-test over seeds, α = 0.05" in html
+    # deltas vs A on the means: B's BLEU +9.27 is better, its MAE -0.60 is better (lower), C's missing 2D mAP is –
     assert (
-        '<td class="num better">+1.19</td><td class="num better">+13.64</td><td class="num better">-0.67</td>' in html
+        '<td class="num better">+9.27</td><td class="num better">+13.50</td><td class="num better">-0.60</td>' in html
     )
+    # error bars: the std with seeds, nothing for a one-seed cell without samples
+    assert error_bar(table, 1, "nuinteract/avg") == (pytest.approx(0.2517, abs=1e-4),) * 2
+    assert error_bar(table, 5, "nuinteract/avg") == (0.0, 0.0)
 
 
 def test_cli_compares_a_sweep_and_logs_the_report_to_it(store):
     out = store.workdir / "reports" / "abl"
     r = _gdwm("compare", f"workdir={store.workdir}", "args.sweep=abl", "args.baseline=B")
     assert r.returncode == 0, r.stderr
-    assert "NuInteract" in r.stdout and "failed at lora" in r.stdout
+    assert "NuInteract" in r.stdout and "failed at" in r.stdout  # 11 columns ± std wrap in 160 characters
     names = sorted(p.name for p in out.iterdir())
     assert names == ["nuinteract.csv", "nuinteract.html", "nuinteract.md", "nuinteract.tex"]
     html = (out / "nuinteract.html").read_text()
     assert "Deltas vs baseline B" in html and "No training history" not in html
     assert html.count("<img") == 4  # radar, bars, deltas, training curves
+    md = (out / "nuinteract.md").read_text().splitlines()
+    assert md[-1].startswith("Bold: best; underlined: second. Rows whose difference is not significant share a mark")
+    assert md[5].startswith("| B | Voxel Top-K | KL | **69.77 ± 0.75** | – | – | **48.50 ± 0.50** |")
     logged = store.backend().client.list_artifacts(store.sweep_id, "compare/nuinteract")
     assert sorted(a.path for a in logged) == [f"compare/nuinteract/{n}" for n in names]
 
 
-def test_cli_layout_formats_and_out(store, tmp_path):
-    args = [f"args.runs=[{store.plain_run}]", "compare=generation", "args.formats=[csv]", f"args.out={tmp_path}"]
-    r = _gdwm("compare", f"workdir={store.workdir}", *args)
+def test_cli_one_seed_interval_is_scipys_bootstrap_over_the_samples(store, tmp_path):
+    args = [f"args.runs=[{store.plain_run}]", "args.formats=[csv]", f"args.out={tmp_path}"]
+    r = _gdwm("compare", f"workdir={store.workdir}", *args, "args.resamples=200", "args.stats_seed=7")
     assert r.returncode == 0, r.stderr
-    assert r.stdout.strip() == f"wrote {tmp_path}/generation.csv"
-    assert (tmp_path / "generation.csv").read_text().splitlines()[1].endswith(",FINISHED,9.5,")
+    assert r.stdout.strip() == f"wrote {tmp_path}/nuinteract.csv"
+    text = (tmp_path / "nuinteract.csv").read_text()
+    row = next(csv.DictReader(io.StringIO(text)))
+    ref = stats.bootstrap(
+        (100.0 * CORRECT,), np.mean, n_resamples=200, rng=np.random.default_rng(7), method="BCa"
+    ).confidence_interval
+    assert float(row["nuinteract/avg"]) == pytest.approx(100 * CORRECT.mean())
+    assert (row["nuinteract/avg/std"], row["nuinteract/avg/n"], row["nuinteract/avg/mark"]) == ("", "1", "")
+    assert float(row["nuinteract/avg/ci_low"]) == pytest.approx(ref.low, rel=1e-12)
+    assert float(row["nuinteract/avg/ci_high"]) == pytest.approx(ref.high, rel=1e-12)
+    assert text.splitlines()[-1] == "# Cells: one seed: value [95% bootstrap CI over held-out samples]."
 
 
 @pytest.mark.parametrize(
@@ -264,7 +423,7 @@ def test_cli_layout_formats_and_out(store, tmp_path):
             1,
             "gdwm compare: CommandError: args.filter=\"tags.gdwm.row = 'Z'\": no runs",
         ),
-        (["args.sweep=abl", "args.baseline=Q"], 1, "args.baseline=Q: no such row (rows: A, B, C, D, E)"),
+        (["args.sweep=abl", "args.baseline=Q"], 1, "args.baseline=Q: no such row (rows: A, B, C, D, E, F)"),
         (["compare=nuintract"], 2, "config group 'compare' has no option 'nuintract'; allowed values: generation"),
         (["args.sweeep=abl"], 2, "unknown config key 'args.sweeep'"),
         (["args.formats=[pdf]"], 2, "args.formats"),

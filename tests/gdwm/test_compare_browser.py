@@ -1,5 +1,5 @@
-"""The HTML report of ``gdwm compare`` in headless Chromium (from disk): the table renders with its marks and every
-plot loads. Skips when Debian's chromium or the playwright package is missing."""
+"""The HTML report of ``gdwm compare`` in headless Chromium (from disk): the table renders with its cells' uncertainty,
+its marks and its legend, and every plot loads. Skips when Debian's chromium or the playwright package is missing."""
 
 import shutil
 import subprocess
@@ -42,14 +42,18 @@ def test_report_renders_table_and_loads_every_plot(report):
             "img", "imgs => imgs.map(i => [i.complete, i.naturalWidth, i.naturalHeight])"
         )
         links = page.eval_on_selector_all("#results tbody a", "as => as.map(a => a.href)")
+        legend = page.inner_text("#legend")
         browser.close()
-    assert [r[0] for r in rows] == ["A", "B", "C", "D", "E"]
+    assert [r[0] for r in rows] == ["A", "B", "C", "D", "E", "F"]
     # row, two factors, 11 NuInteract columns, note
-    assert rows[2][:4] == ["C", "Driving-Aware", "KL", "70.19"] and len(rows[2]) == 15
+    assert rows[2][:4] == ["C", "Driving-Aware", "KL", "70.17 ± 0.75"] and len(rows[2]) == 15
     assert rows[2][6] == "–"  # C logged no 2D mAP
+    assert rows[3][6] == "48.50 ± 1.41 (n=2)"  # D: 2 of 3 seeds finished
     assert rows[4][-1] == "failed at lora: RuntimeError: CUDA out of memory"
-    assert sorted(bold) == ["48.59", "62.71", "70.19"]
-    assert sorted(underlined) == ["48.10", "61.37", "69.97", "69.97"]
+    assert sorted(bold) == ["48.50 ± 0.50", "48.50 ± 1.41 (n=2)", "62.75 ± 0.07 (n=2)", "69.77 ± 0.75", "70.17 ± 0.75"]
+    assert sorted(underlined) == ["35.00 ± 1.00", "61.23 ± 0.25", "61.43 ± 0.15", "65.30 ± 0.42 (n=2)"]
+    assert legend.startswith("Bold: best; underlined: second. Rows whose difference is not significant share a mark")
+    assert "(Welch's t-test over seeds, α = 0.05)" in legend and "(n=k): k of 3 seeds finished." in legend
     assert len(images) == 4  # radar, bars, deltas, training curves
     assert all(complete and w > 0 and h > 0 for complete, w, h in images), images
-    assert all(href.startswith("http://127.0.0.1:5000/#/experiments/") for href in links) and len(links) == 5
+    assert all(href.startswith("http://127.0.0.1:5000/#/experiments/") for href in links) and len(links) == 6

@@ -81,7 +81,7 @@ def test_server_tracking_takes_uri_from_environment(monkeypatch, tmp_path):
     ("override", "message"),
     [
         ("data.num_scnes=3", "unknown config key 'data.num_scnes'; allowed keys here: name, root, builder"),
-        ("bogus=1", "unknown config key 'bogus'; allowed keys here: workdir, source, overwrite, seed, data"),
+        ("bogus=1", "unknown config key 'bogus'; allowed keys here: workdir, source, overwrite, seed, seeds, data"),
         ("data.num_scenes=many", "invalid value for 'data.num_scenes': Value 'many' of type 'str' could not be"),
         (
             "data=synthetic_maxi",

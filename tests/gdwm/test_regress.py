@@ -3,11 +3,13 @@ pushes past its tolerance (direction-aware), exits 2 on a bad suite, logs a regr
 
 from __future__ import annotations
 
+import statistics
 import subprocess
 import sys
 
 import pytest
 
+from gdwm.regress import CheckTest, Direction, MetricCheck, check, failed
 from tests.gdwm.test_run import Toy, _ok
 
 
@@ -63,4 +65,86 @@ def test_bad_suite_exits_2(tmp_path):
     r = _regress(toy, "benchmark=toy_bad")
     assert r.returncode == 2
     assert "sideways" in r.stderr and "direction" in r.stderr
+    assert not (toy.work / "mlflow.db").exists()
+
+
+@pytest.fixture(scope="module")
+def seeded(tmp_path_factory) -> Toy:
+    toy = Toy(tmp_path_factory.mktemp("regress_seeds"))
+    _ok(_regress(toy, "benchmark=toy_seeds", "--set-baseline"))
+    return toy
+
+
+def _acc(rank: float, seeds) -> list[float]:
+    from tests.gdwm.stages import seed_noise
+
+    return [12 * (rank + seed_noise(s)) for s in seeds]  # toy lora: 3 steps x 4 dims of (rank + noise(seed))
+
+
+def test_seeded_baseline_records_mean_spread_and_samples(seeded):
+    (base,) = seeded.runs("regression")
+    acc = _acc(4, (0, 1, 2))
+    m = base.data.metrics
+    assert m["nuinteract/plan_acc"] == pytest.approx(statistics.fmean(acc))
+    assert m["std/nuinteract/plan_acc"] == pytest.approx(statistics.stdev(acc)) and m["n/nuinteract/plan_acc"] == 3
+    assert base.data.tags["gdwm.seeds"] == "0,1,2"
+    files = {a.path for a in seeded.client().list_artifacts(base.info.run_id, "samples/evaluate_qa")}
+    assert files == {f"samples/evaluate_qa/seed_{s}.parquet" for s in (0, 1, 2)}
+    assert base.data.tags["gdwm.scorer.evaluate_qa"] == "tests.gdwm.stages:score_toy"
+
+
+def test_other_seeds_of_the_same_model_do_not_fire(seeded):
+    # seeds 3-5 of the same model: plan_acc moves by about 2.2 std of the baseline's spread, within 3 sigma
+    r = _regress(seeded, "benchmark=toy_seeds", "seeds=[3,4,5]")
+    _ok(r)
+    base, now = _acc(4, (0, 1, 2)), _acc(4, (3, 4, 5))
+    shift = (statistics.fmean(base) - statistics.fmean(now)) / statistics.stdev(base)
+    assert 1.5 < shift < 3  # a drop a fixed tolerance of 1.0 would have called a regression
+    assert "REGRESSION" not in r.stdout and "mean of seeds [3, 4, 5]" in r.stdout
+    assert f"3σ = {3 * statistics.stdev(base):.3g}" in r.stdout
+
+
+def test_a_planted_regression_fires(seeded):
+    r = _regress(seeded, "benchmark=toy_seeds", "experiment=toy", "stage.toy_lora.rank=1")
+    assert r.returncode == 1, r.stderr[-3000:]
+    before, after = statistics.fmean(_acc(4, (0, 1, 2))), statistics.fmean(_acc(1, (0, 1, 2)))
+    assert f"regression: nuinteract/plan_acc {before:.4g} -> {after:.4g} (tolerance 3σ = " in r.stderr
+    # the MAE check: 20% worse, and significantly so in a paired bootstrap over the 40 held-out samples
+    assert "regression: nuinstruct/mae" in r.stderr and "(tolerance 20%, bootstrap ↓)" in r.stderr
+
+
+def test_check_with_sigma_and_bootstrap():
+    checks = [
+        MetricCheck("a", Direction.higher, {"sigma": 2}),
+        MetricCheck("b", Direction.higher, 0.0, test=CheckTest.bootstrap),
+        MetricCheck("c", Direction.lower, 0.0, test=CheckTest.bootstrap),
+        MetricCheck("d", Direction.higher, {"sigma": 2}),
+    ]
+    base = {"a": 10.0, "std/a": 1.0, "b": 5.0, "c": 1.0, "d": 3.0}
+    now = {"a": 7.5, "b": 4.0, "c": 1.5, "d": 3.0}
+    cis = {"b": (-2.0, 0.5), "c": (0.2, 0.8)}  # b: not significant; c: MAE significantly up
+    rows = {r.metric: r for r in check(checks, base, now, cis.get)}
+    assert rows["a"].verdict == "REGRESSION" and rows["a"].tolerance == "2σ = 2 ↑"  # 2.5 worse > 2 x 1.0
+    assert rows["b"].verdict == "ok (not significant)"
+    assert rows["c"].verdict == "REGRESSION"
+    assert rows["d"].verdict == "no spread"  # the baseline had one seed: sigma is undefined, and that fails
+    assert [r.metric for r in failed(list(rows.values()))] == ["a", "c", "d"]
+    assert check([MetricCheck("b", test=CheckTest.bootstrap)], {"b": 2.0}, {"b": 1.0})[0].verdict == "untestable"
+
+
+@pytest.mark.parametrize(
+    ("tolerance", "message"),
+    [({"sigma": -1}, "needs K >= 0"), ({"sgima": 3}, "a number or {sigma: K}"), ("x", "a number >= 0 or")],
+)
+def test_bad_tolerance_names_the_metric(tolerance, message):
+    with pytest.raises(ValueError, match=r"metric 'm': tolerance") as e:
+        MetricCheck("m", tolerance=tolerance)
+    assert message in str(e.value)
+
+
+def test_sigma_without_seeds_exits_2(tmp_path):
+    toy = Toy(tmp_path)
+    r = _regress(toy, "benchmark=toy_seeds", "seeds=[0]")
+    assert r.returncode == 2
+    assert "nuinteract/plan_acc has tolerance {sigma: K}, which needs >= 2 seeds" in r.stderr
     assert not (toy.work / "mlflow.db").exists()

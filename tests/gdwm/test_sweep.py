@@ -4,6 +4,7 @@ log and from MLflow), trials are child runs of one sweep run, resume and extensi
 from __future__ import annotations
 
 import signal
+import statistics
 import subprocess
 import sys
 import time
@@ -47,14 +48,23 @@ def test_shared_stages_run_exactly_once(swept):
     assert "(shared by 3 trials)" in swept.stdout  # tokenizer
 
 
-def test_one_parent_with_a_child_per_trial(swept):
+def test_one_parent_a_run_per_row_and_a_child_per_trial(swept):
     (parent,) = swept.runs("sweep")
     assert parent.info.status == "FINISHED" and parent.data.tags["gdwm.sweep"] == "toy_ablation"
     assert parent.data.metrics["stage_executions"] == 9 and parent.data.metrics["trials"] == 3
+    rows = {r.data.tags["gdwm.row"]: r for r in swept.runs("row")}
+    assert sorted(rows) == ["rank 2", "rank 4", "rank 8"]
+    assert {r.data.tags["mlflow.parentRunId"] for r in rows.values()} == {parent.info.run_id}
     trials = _trials(swept)
     assert sorted(trials) == ["rank 2", "rank 4", "rank 8"]
-    assert {t.data.tags["mlflow.parentRunId"] for t in trials.values()} == {parent.info.run_id}
-    assert {t.info.status for t in trials.values()} == {"FINISHED"}
+    assert {k: t.data.tags["mlflow.parentRunId"] for k, t in trials.items()} == {
+        k: r.info.run_id for k, r in rows.items()
+    }
+    assert {t.info.status for t in trials.values()} | {r.info.status for r in rows.values()} == {"FINISHED"}
+    assert {t.data.tags["gdwm.seed"] for t in trials.values()} == {"0"}
+    # one seed: the row's aggregate is that seed's value, with n = 1 and no std
+    assert rows["rank 8"].data.metrics["acc"] == 96.0 and rows["rank 8"].data.metrics["n/acc"] == 1.0
+    assert "std/acc" not in rows["rank 8"].data.metrics
     assert trials["rank 8"].data.tags["gdwm.factor.Rank"] == "8"
     assert trials["rank 8"].data.params["stage.toy_lora.rank"] == "8"
     # the toy evaluate_qa sums lora weights that grow by `rank` per step (3 steps, 4 dims)
@@ -67,7 +77,7 @@ def test_one_parent_with_a_child_per_trial(swept):
 
 def test_report_written_and_logged_to_the_sweep_run(swept):
     md = (swept.work / "reports" / "toy_ablation" / "nuinteract.md").read_text()
-    assert "**96.00**" in md and "<u>48.00</u>" in md  # plan accuracy: best and second
+    assert "**96.00 [" in md and "<u>48.00 [" in md  # plan accuracy: best and second, each with its interval
     (parent,) = swept.runs("sweep")
     logged = {a.path for a in swept.client().list_artifacts(parent.info.run_id, "compare/nuinteract")}
     assert "compare/nuinteract/nuinteract.html" in logged
@@ -87,6 +97,7 @@ def test_rerun_is_all_cached_and_extending_runs_only_new_stages(swept, tmp_path)
     assert sorted(trials) == ["rank 2", "rank 4", "rank 6", "rank 8"] and len(toy.runs("trial")) == 4
     assert len(toy.runs("sweep")) == 1  # the same sweep run continued
     assert trials["rank 6"].data.metrics["acc"] == 72.0
+    assert len(toy.runs("row")) == 4
 
 
 def test_bad_row_is_rejected_before_launch(tmp_path):
@@ -140,3 +151,55 @@ def test_sigkilled_driver_resumes_the_sweep_without_duplicates(tmp_path):
     assert len(toy.runs("trial")) == 3 and len(toy.runs("sweep")) == 1
     assert max(Counter(r.data.tags["gdwm.cache_key"] for r in toy.runs()).values()) == 1
     assert Counter(s for s, _ in toy.executions())["tokenizer"] == 1  # finished before the kill: not redone
+
+
+def test_seeds_share_seed_free_stages_and_aggregate_per_row(tmp_path):
+    """2 rows x 3 seeds: reconstruct and distill (seed-free) run once, tokenizer once per seed (shared by the rows),
+    lora and evaluate_qa once per (row, seed); each row's run holds mean, std and n over its seeds."""
+    toy = Toy(tmp_path)
+    r = _sweep(toy, "sweep=toy_seeds")
+    _ok(r)
+    stage_runs = Counter(x.data.tags["gdwm.stage"] for x in toy.runs())
+    assert stage_runs == {"reconstruct": 1, "distill": 1, "tokenizer": 3, "lora": 6, "evaluate_qa": 6}
+    assert Counter(s for s, _ in toy.executions()) == {
+        "reconstruct": 3, "distill": 3, "tokenizer": 3, "lora": 6, "evaluate_qa": 6,
+    }  # fmt: skip
+    # the seed enters a seeded stage's config (so its key) and params; a seed-free stage's config has none
+    lora_params = sorted(x.data.params["seed"] for x in toy.runs() if x.data.tags["gdwm.stage"] == "lora")
+    assert lora_params == ["0", "0", "1", "1", "2", "2"]
+    assert all("seed" not in x.data.params for x in toy.runs() if x.data.tags["gdwm.stage"] == "distill")
+    assert "sweep: 6 trials, 17 stage executions run (30 as independent runs without a cache)" in r.stdout
+    rows = {x.data.tags["gdwm.row"]: x for x in toy.runs("row")}
+    trials = toy.runs("trial")
+    assert len(trials) == 6 and sorted(t.data.tags["gdwm.seed"] for t in trials) == ["0", "0", "1", "1", "2", "2"]
+    from tests.gdwm.stages import seed_noise
+
+    # rank 4, 3 steps, 4 dims: acc = 12 * (4 + noise(seed))
+    acc = [12 * (4 + seed_noise(s)) for s in (0, 1, 2)]
+    m = rows["rank 4"].data.metrics
+    assert m["acc"] == pytest.approx(sum(acc) / 3) and m["n/acc"] == 3.0
+    assert m["std/acc"] == pytest.approx(statistics.stdev(acc))
+    per_seed = {t.data.tags["gdwm.seed"]: t.data.metrics["acc"] for t in trials if t.data.tags["gdwm.row"] == "rank 4"}
+    assert per_seed == pytest.approx({"0": acc[0], "1": acc[1], "2": acc[2]})
+    assert {t.data.tags["mlflow.parentRunId"] for t in trials if t.data.tags["gdwm.row"] == "rank 4"} == {
+        rows["rank 4"].info.run_id
+    }
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["sweep=toy_seeds", "seeds=[]"], "seeds: no seeds given"),
+        (["sweep=toy_seeds", "seeds=[0,-1]"], "seeds: seeds must be integers >= 0, got [-1]"),
+        (["sweep=toy_seeds", "seeds=[0,x]"], "seeds"),
+        (["sweep=toy_seeds", "seeds=[1,1]"], "seeds: seed(s) [1] listed twice"),
+        (["sweep=toy_grid", "seeds=[0,1]", "+sweep.grid.seed=[1,2]"], "grid key 'seed' sets a seed itself"),
+        (["sweep=toy_seeds", "seed=3"], "command-line override 'seed=3' sets the trial seed"),
+    ],
+)
+def test_bad_seeds_exit_2_naming_the_key(tmp_path, args, message):
+    toy = Toy(tmp_path)
+    r = _sweep(toy, *args)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert message in r.stderr
+    assert not (tmp_path / "executions.log").exists()

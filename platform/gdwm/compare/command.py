@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -9,15 +10,32 @@ from omegaconf import DictConfig, OmegaConf
 from gdwm.compare.layout import CompareArgs, Format, LayoutConfig
 from gdwm.compare.render import to_csv, to_latex, to_markdown, to_rich
 from gdwm.compare.runs import SelectionError, select, training_curves
+from gdwm.compare.samples import load_samples
+from gdwm.compare.stats import Settings
 from gdwm.compare.table import build_table
 from gdwm.term import console, err_console
 from gdwm.tracking import TrackingBackend
 
+METHODS = ("BCa", "percentile", "basic")
+"""``scipy.stats.bootstrap`` methods."""
 SUFFIX = {Format.markdown: "md", Format.latex: "tex", Format.csv: "csv", Format.html: "html"}
 
 
 def _sqlite_path(uri: str) -> Path | None:
     return Path(uri.removeprefix("sqlite:///")) if uri.startswith("sqlite:///") else None
+
+
+def settings(args: CompareArgs) -> Settings:
+    """The statistics' settings from ``args``; a value out of range is named as the user would set it."""
+    for name in ("alpha", "confidence"):
+        value = getattr(args, name)
+        if not 0 < value < 1:
+            raise ValueError(f"args.{name}={value}: must lie strictly between 0 and 1")
+    if args.resamples < 2:
+        raise ValueError(f"args.resamples={args.resamples}: the bootstrap needs at least 2 resamples")
+    if args.bootstrap_method not in METHODS:
+        raise ValueError(f"args.bootstrap_method={args.bootstrap_method}: must be one of {', '.join(METHODS)}")
+    return Settings(args.alpha, args.confidence, args.resamples, args.stats_seed, args.bootstrap_method)
 
 
 def compare(cfg: DictConfig) -> int:
@@ -26,6 +44,10 @@ def compare(cfg: DictConfig) -> int:
 
     args: CompareArgs = OmegaConf.to_object(cfg.args)
     layout: LayoutConfig = OmegaConf.to_object(cfg.compare)
+    try:
+        stats = settings(args)
+    except ValueError as e:
+        raise CommandError(str(e)) from e
     db = _sqlite_path(cfg.tracking.uri)
     if db is not None and not db.is_file():
         raise CommandError(f"no MLflow store at {db} (tracking.uri); run `gdwm run` first or set workdir=...")
@@ -34,9 +56,12 @@ def compare(cfg: DictConfig) -> int:
         sel = select(backend, args.sweep, args.runs, args.filter, args.factors)
     except SelectionError as e:
         raise CommandError(str(e)) from e
-    table = build_table(sel.rows, layout)
+    with tempfile.TemporaryDirectory(prefix="gdwm-compare-") as tmp:  # the tables are read into memory
+        for problem in load_samples(backend, sel.rows, Path(tmp)):
+            err_console.print(f"gdwm compare: warning: no per-sample statistics for {problem}", markup=False)
+    table = build_table(sel.rows, layout, stats)
     if not any(table.value(i, c.metric) is not None for i in range(len(table.rows)) for c in table.columns):
-        logged = sorted({m for r in sel.rows for m in r.metrics})
+        logged = sorted({m for r in sel.rows for t in r.trials for m in t.metrics})
         err_console.print(
             f"gdwm compare: warning: the rows logged no metric of layout '{layout.name}' (pick one with "
             f"compare=NAME); they logged: {', '.join(logged) or 'nothing'}",

@@ -31,7 +31,7 @@ LOWER_IS_BETTER = {"mae", "fid", "fvd", "depth_absrel", "depth_rmse"}
 
 
 def default_direction(metric: str) -> Direction:
-    """DESIGN §11: MAE, FID, FVD, Fréchet distances, AbsRel and RMSE are lower-is-better; the rest higher."""
+    """MAE, FID, FVD, Fréchet distances, AbsRel and RMSE are lower-is-better (README, Metrics); the rest higher."""
     leaf = metric.rsplit("/", 1)[-1]
     return Direction.lower if leaf in LOWER_IS_BETTER or leaf.startswith("fd_") else Direction.higher
 
@@ -65,7 +65,7 @@ class LayoutConfig:
     order: list[str] = field(default_factory=list)
     """Order of discovered leaves inside a group, as fnmatch patterns (e.g. ``fd_*``); the rest follow, sorted."""
     precision: int = 2
-    """Decimals shown; values equal at this precision tie (and share a mark)."""
+    """Decimals shown; a column whose values all print the same gets no marks."""
 
 
 @dataclass
@@ -86,6 +86,16 @@ class CompareArgs:
     """Output folder; null = ``<workdir>/reports/<sweep name | runs | filter | all>``."""
     formats: list[Format] = field(default_factory=lambda: list(Format))
     """What to produce: terminal, markdown, latex, csv, html."""
+    alpha: float = 0.05
+    """Significance level of the tests behind bold/underline (paired bootstrap, else Welch's t-test over seeds)."""
+    confidence: float = 0.95
+    """Coverage of the cells' intervals (bootstrap over held-out samples, Student's t over seeds)."""
+    resamples: int = 1000
+    """Bootstrap resamples; each one rescores every row's per-sample predictions once."""
+    stats_seed: int = 0
+    """Seed of the bootstrap's resampling: the same runs give the same intervals and marks."""
+    bootstrap_method: str = "BCa"
+    """``BCa`` (its jackknife rescores every row once per held-out sample), ``percentile`` or ``basic``."""
 
 
 @dataclass(frozen=True)

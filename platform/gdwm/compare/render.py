@@ -1,4 +1,4 @@
-"""The table as a rich table, Markdown, LaTeX (booktabs) and CSV."""
+"""The table as a rich table, Markdown, LaTeX (booktabs) and CSV; each carries the table's legend."""
 
 from __future__ import annotations
 
@@ -15,12 +15,12 @@ _STYLE = {BEST: "bold", SECOND: "underline"}
 
 
 def _cell(table: Table, i: int, metric: str) -> tuple[str, str | None]:
-    return table.fmt(table.value(i, metric)), table.marks.get((i, metric))
+    return table.text(i, metric), table.marks.get((i, metric))
 
 
 def to_rich(table: Table) -> RichTable:
-    """Group names head the first column of their group; bold = best, underlined = second best."""
-    t = RichTable(title=table.title, header_style="bold")
+    """Group names head the first column of their group; bold = best, underlined = second; the legend as caption."""
+    t = RichTable(title=table.title, header_style="bold", caption=table.legend or None, caption_justify="left")
     top = "\n" if any(c.group for c in table.columns) else ""  # a first header line for the group names
     for name in ("row", *table.factors):
         t.add_column(top + name)
@@ -47,7 +47,7 @@ def _md_escape(s: str) -> str:
 
 
 def to_markdown(table: Table) -> str:
-    """GitHub Markdown: ``**best**``, ``<u>second</u>``; headers read ``<group> <header> ↑``."""
+    """GitHub Markdown: ``**best**``, ``<u>second</u>``; headers read ``<group> <header> ↑``; the legend under it."""
     head = ["row", *table.factors, *(c.label for c in table.columns)]
     head += ["note"] if table.has_notes else []
     lines = [f"**{_md_escape(table.title)}**", "", "| " + " | ".join(map(_md_escape, head)) + " |"]
@@ -60,6 +60,7 @@ def to_markdown(table: Table) -> str:
             cells.append(f"**{text}**" if mark == BEST else f"<u>{text}</u>" if mark == SECOND else text)
         cells += [r.note] if table.has_notes else []
         lines.append("| " + " | ".join(map(_md_escape, cells)) + " |")
+    lines += ["", _md_escape(table.legend)] if table.legend else []
     return "\n".join(lines) + "\n"
 
 
@@ -71,6 +72,8 @@ _TEX = {
     "–": "--",
     "↑": r"$\uparrow$",
     "↓": r"$\downarrow$",
+    "±": r"$\pm$",
+    "α": r"$\alpha$",
 }
 _TEX_RE = re.compile("|".join(map(re.escape, _TEX)))
 
@@ -79,12 +82,28 @@ def tex_escape(s: str) -> str:
     return _TEX_RE.sub(lambda m: _TEX[m.group()], s)
 
 
+def _tex_cell(table: Table, i: int, metric: str) -> str:
+    """``35.10{\\scriptsize$\\pm$1.20}``, ``35.10{\\scriptsize[33.02, 37.21]}``, then ``{\\scriptsize~(n=2)}``."""
+    value, unc, count = table.parts(i, metric)
+    text = tex_escape(value)
+    if unc.startswith("±"):
+        text += f"{{\\scriptsize$\\pm${tex_escape(unc[1:].strip())}}}"
+    elif unc:
+        text += f"{{\\scriptsize{tex_escape(unc)}}}"
+    if count:
+        text += f"{{\\scriptsize~{tex_escape(count)}}}"
+    mark = table.marks.get((i, metric))
+    return f"\\textbf{{{text}}}" if mark == BEST else f"\\underline{{{text}}}" if mark == SECOND else text
+
+
 def to_latex(table: Table) -> str:
-    """A booktabs ``tabular`` (needs booktabs); group headers as ``\\multicolumn`` over a ``\\cmidrule``."""
+    """A booktabs ``tabular`` (needs booktabs); group headers as ``\\multicolumn`` over a ``\\cmidrule``; the legend as
+    a comment above it and a ``\\caption{...}`` line (commented, to paste into the float) below."""
     lead = 1 + len(table.factors)
     spec = "l" * lead + "c" * len(table.columns) + ("l" if table.has_notes else "")
     lines = [
         f"% {tex_escape(table.title)} (needs \\usepackage{{booktabs}})",
+        *([f"% Legend: {table.legend}"] if table.legend else []),
         f"\\begin{{tabular}}{{{spec}}}",
         r"\toprule",
     ]
@@ -103,25 +122,36 @@ def to_latex(table: Table) -> str:
     lines += [" & ".join(map(tex_escape, head)) + r" \\", r"\midrule"]
     for i, r in enumerate(table.rows):
         cells = [tex_escape(r.label), *(tex_escape(table.factor(i, f)) for f in table.factors)]
-        for c in table.columns:
-            text, mark = _cell(table, i, c.metric)
-            text = tex_escape(text)
-            cells.append(
-                f"\\textbf{{{text}}}" if mark == BEST else f"\\underline{{{text}}}" if mark == SECOND else text
-            )
+        cells += [_tex_cell(table, i, c.metric) for c in table.columns]
         cells += [tex_escape(r.note)] if table.has_notes else []
         lines.append(" & ".join(cells) + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}"]
+    lines += [f"% \\caption{{{tex_escape(table.title)}. {tex_escape(table.legend)}}}"] if table.legend else []
     return "\n".join(lines) + "\n"
 
 
+CSV_STATS = ("std", "n", "ci_low", "ci_high", "mark")
+"""Per metric, after its mean: ``<metric>/<stat>`` columns."""
+
+
 def to_csv(table: Table) -> str:
-    """One line per row: label, run id, status, factors, metrics by name (full precision; empty = missing), note."""
+    """One line per row: label, run id, status, factors, then per metric its mean, std, n, CI and mark (full
+    precision; empty = missing), note; the legend as a last line starting with ``#`` (pandas: ``comment="#"``)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["row", "run_id", "status", *table.factors, *(c.metric for c in table.columns), "note"])
+    metrics = [[c.metric, *(f"{c.metric}/{s}" for s in CSV_STATS)] for c in table.columns]
+    w.writerow(["row", "run_id", "status", *table.factors, *(h for m in metrics for h in m), "note"])
     for i, r in enumerate(table.rows):
-        values = [table.value(i, c.metric) for c in table.columns]
         factors = [r.factors.get(f, "") for f in table.factors]
-        w.writerow([r.label, r.run_id, r.status, *factors, *("" if v is None else repr(v) for v in values), r.note])
+        values = []
+        for c in table.columns:
+            cell = table.cell(i, c.metric)
+            if cell is None:
+                values += [""] * (1 + len(CSV_STATS))
+                continue
+            stats = (cell.mean, cell.std, cell.n, cell.ci_low, cell.ci_high)
+            values += ["" if v is None else repr(v) for v in stats] + [table.marks.get((i, c.metric), "")]
+        w.writerow([r.label, r.run_id, r.status, *factors, *values, r.note])
+    if table.legend:
+        buf.write(f"# {table.legend}\n")
     return buf.getvalue()

@@ -1,5 +1,6 @@
-"""A self-contained HTML report: the marked table linked to MLflow, deltas vs a baseline, and matplotlib plots
-(per-metric bars, the Fig. 1 radar, training curves) inlined as base64 PNGs."""
+"""A self-contained HTML report: the marked table (cells with their uncertainty, the legend under it) linked to MLflow,
+deltas vs a baseline, and matplotlib plots (per-metric bars with error bars, the Fig. 1 radar, training curves)
+inlined as base64 PNGs. Deltas and the radar use the means."""
 
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ tr.failed td { color: #999; }
 td.note { color: #b00; }
 td.better { color: #070; } td.worse { color: #b00; }
 img { max-width: 100%; display: block; margin: 1em 0; }
-.meta { color: #666; }
+.meta, .legend { color: #666; }
 """
 
 
@@ -55,8 +56,21 @@ def _grid(n: int, size: float = 3.0):
     return fig, list(axes.flat)
 
 
+def error_bar(table: Table, i: int, metric: str) -> tuple[float, float]:
+    """(below, above) the mean: the std over seeds, else the bootstrap interval, else none."""
+    c = table.cell(i, metric)
+    if c is None:
+        return 0.0, 0.0
+    if c.std is not None:
+        return c.std, c.std
+    if c.ci_low is not None and c.ci_high is not None:  # a BCa interval may sit off the mean: clip to non-negative
+        return max(c.mean - c.ci_low, 0.0), max(c.ci_high - c.mean, 0.0)
+    return 0.0, 0.0
+
+
 def bars(table: Table) -> str | None:
-    """One panel per metric: a bar per row that did not fail; best and second best coloured. None: no values."""
+    """One panel per metric: a bar per row that did not fail, with its error bar; best and second coloured.
+    None: no values."""
     cols = _live_columns(table)[:MAX_PANELS]
     if not cols:
         return None
@@ -66,9 +80,13 @@ def bars(table: Table) -> str | None:
     for ax, j in zip(axes, cols, strict=False):
         c = table.columns[j]
         values = [table.value(i, c.metric) for i in ok]
+        err = [error_bar(table, i, c.metric) for i in ok]
         ax.bar(
             range(len(ok)),
             [v or 0.0 for v in values],
+            yerr=[[lo for lo, _ in err], [hi for _, hi in err]],
+            capsize=3,
+            ecolor="#444",
             color=[colour.get(table.marks.get((i, c.metric)), "#bbb") for i in ok],
         )
         ax.set_xticks(range(len(ok)), [table.rows[i].label for i in ok], rotation=45, ha="right", fontsize=7)
@@ -176,12 +194,13 @@ def table_html(table: Table, ui_url: str) -> str:
         cells = [_run_link(table, i, ui_url), *(escape(table.factor(i, f)) for f in table.factors)]
         tds = "".join(f"<td>{c}</td>" for c in cells)
         for c in table.columns:
-            text, mark = escape(table.fmt(table.value(i, c.metric))), table.marks.get((i, c.metric))
+            text, mark = escape(table.text(i, c.metric)), table.marks.get((i, c.metric))
             text = f"<strong>{text}</strong>" if mark == BEST else f"<u>{text}</u>" if mark == SECOND else text
             tds += f'<td class="num">{text}</td>'
         tds += f'<td class="note">{escape(r.note)}</td>' if notes else ""
         body.append(f'<tr class="{"failed" if r.failed else "ok"}">{tds}</tr>')
-    return f'<table id="results">{_thead(table, notes)}<tbody>{"".join(body)}</tbody></table>'
+    legend = f'<p class="legend" id="legend">{escape(table.legend)}</p>' if table.legend else ""
+    return f'<table id="results">{_thead(table, notes)}<tbody>{"".join(body)}</tbody></table>{legend}'
 
 
 def deltas_html(table: Table, base: int, ui_url: str) -> str:
@@ -236,6 +255,6 @@ def html_report(table: Table, base: int, curves: dict[str, Curves], ui_url: str,
         f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>{escape(table.title)}</title>'
         f"<style>{_CSS}</style></head><body><h1>{escape(table.title)}</h1>"
         f'<p class="meta">{escape(selector)} · {escape(store)} · {len(table.rows)} rows · generated {generated}. '
-        "Best in <strong>bold</strong>, second best <u>underlined</u>; – = not logged.</p>"
+        "– = not logged; the legend under the table says what the cells and marks mean.</p>"
         f"{table_html(table, ui_url)}{''.join(section)}</body></html>\n"
     )

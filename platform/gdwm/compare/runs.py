@@ -1,14 +1,17 @@
-"""Rows of a comparison, read from MLflow.
+"""Rows of a comparison and their trials (one per seed), read from MLflow.
 
 Tag conventions (set by ``gdwm run`` and the sweep):
 
-- a comparable row is a run tagged ``gdwm.kind`` = ``trial`` or ``run``; its metrics are its evaluation metrics;
-- its label is the tag ``gdwm.row`` (else the run name); its factors are the tags ``gdwm.factor.<Name>``;
-- a sweep is a run tagged ``gdwm.kind=sweep``, ``gdwm.sweep=<name>``; its trials are its child runs
-  (``mlflow.parentRunId``), ordered by the tag ``gdwm.trial_index`` when set, else by start time;
-- a failed trial ends FAILED with tags ``gdwm.failed_stage`` and ``gdwm.error``;
-- the stage runs a row used (for training curves) are runs tagged ``gdwm.stage`` that are its children, carry
-  ``gdwm.trial=<row run id>``, or that the row links with a tag ``gdwm.stage_run.<stage>=<run id>``.
+- a sweep is a run tagged ``gdwm.kind=sweep``, ``gdwm.sweep=<name>``; its rows are its child runs
+  (``mlflow.parentRunId``) tagged ``gdwm.kind=row``, ordered by the tag ``gdwm.trial_index`` (else start time);
+- a row's trials are its child runs tagged ``gdwm.kind=trial``, one per seed (``gdwm.seed``); its planned seeds are
+  the tag ``gdwm.seeds`` (``0,1,2``); the trials' metrics are the source of truth (the row's own are aggregates);
+- a plain ``gdwm run`` (``gdwm.kind=run``) is a row: with several seeds its children are its trials, with one it is
+  its own trial; a trial selected by id, or one directly under a sweep (stores from before seeds), is a row alone;
+- a row's label is the tag ``gdwm.row`` (else the run name); its factors are the tags ``gdwm.factor.<Name>``;
+- a failed trial ends FAILED with tags ``gdwm.failed_stage`` and ``gdwm.error``; a row fails when all its trials do;
+- the stage runs a trial used (for training curves) are runs tagged ``gdwm.stage`` that are its children, carry
+  ``gdwm.trial=<run id>``, or that it links with a tag ``gdwm.stage_run.<stage>=<run id>``.
 """
 
 from __future__ import annotations
@@ -18,16 +21,45 @@ from dataclasses import dataclass, field
 from mlflow.exceptions import MlflowException
 from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID
 
+from gdwm.compare.stats import SampleSet
 from gdwm.tracking import STAGE_TAG, TrackingBackend
 from gdwm.tracking.backend import _run_dict
 
-ROW_KINDS = ("trial", "run")
+ROW_KINDS = ("row", "run")
+TRIAL_KIND = "trial"
 FACTOR_PREFIX = "gdwm.factor."
 STAGE_LINK_PREFIX = "gdwm.stage_run."
 
 
 class SelectionError(Exception):
     """A selector that matches nothing or names an unknown run; the message names the selector."""
+
+
+def _failed(status: str, tags: dict[str, str]) -> bool:
+    return status == "FAILED" or "gdwm.failed_stage" in tags
+
+
+def _note(tags: dict[str, str]) -> str:
+    stage = tags.get("gdwm.failed_stage")
+    error = tags.get("gdwm.error", "").strip().splitlines()
+    return f"failed{f' at {stage}' if stage else ''}{f': {error[0]}' if error else ''}"
+
+
+@dataclass
+class Trial:
+    """One seed of a row: a ``gdwm.kind=trial`` run, or a single-seed run that is its own trial."""
+
+    run_id: str
+    seed: int | None
+    status: str
+    metrics: dict[str, float]
+    tags: dict[str, str] = field(default_factory=dict)
+    samples: dict[str, SampleSet] = field(default_factory=dict)
+    """Evaluation stage -> its per-sample predictions (``samples.load_samples`` fills it)."""
+
+    @property
+    def failed(self) -> bool:
+        return _failed(self.status, self.tags)
 
 
 @dataclass
@@ -37,21 +69,34 @@ class Row:
     status: str
     experiment_id: str
     metrics: dict[str, float]
+    """The row run's own metrics (aggregates for a row run); the table recomputes from ``trials``."""
     factors: dict[str, str] = field(default_factory=dict)
     tags: dict[str, str] = field(default_factory=dict)
+    trials: list[Trial] = field(default_factory=list)
+    """One per seed, in seed order."""
+    planned: int = 1
+    """Seeds the row was meant to have (``gdwm.seeds``)."""
 
     @property
     def failed(self) -> bool:
-        return self.status == "FAILED" or "gdwm.failed_stage" in self.tags
+        """Every trial failed (a multi-seed ``gdwm run`` may end FAILED with seeds that finished); a row that is its
+        own trial, by its own status."""
+        children = [t for t in self.trials if t.run_id != self.run_id]
+        return all(t.failed for t in children) if children else _failed(self.status, self.tags)
+
+    @property
+    def counted(self) -> list[Trial]:
+        """The trials the cells come from: the finished ones; all of them when the row failed (shown, dimmed)."""
+        return self.trials if self.failed else [t for t in self.trials if not t.failed]
 
     @property
     def note(self) -> str:
-        """``failed at <stage>: <error>`` for a failed row, else empty."""
+        """``failed at <stage>: <error>`` for a failed row (from its own tags, else its first trial's), else empty."""
         if not self.failed:
             return ""
-        stage = self.tags.get("gdwm.failed_stage")
-        error = self.tags.get("gdwm.error", "").strip().splitlines()
-        return f"failed{f' at {stage}' if stage else ''}{f': {error[0]}' if error else ''}"
+        if "gdwm.failed_stage" in self.tags:
+            return _note(self.tags)
+        return _note(next((t.tags for t in self.trials if "gdwm.failed_stage" in t.tags), self.tags))
 
 
 @dataclass
@@ -64,12 +109,26 @@ class Selection:
     sweep_run_id: str | None = None
 
 
-def _row(r: dict, experiment_id: str, factor_params: list[str]) -> Row:
+def _trial(r: dict) -> Trial:
+    seed = r["tags"].get("gdwm.seed", "")
+    number = int(seed) if seed.lstrip("-").isdigit() else None
+    return Trial(r["run_id"], number, r["status"], dict(r["metrics"]), dict(r["tags"]))
+
+
+def _row(backend: TrackingBackend, r: dict, factor_params: list[str], selector: str) -> Row:
     tags = r["tags"]
     factors = {k[len(FACTOR_PREFIX) :]: v for k, v in tags.items() if k.startswith(FACTOR_PREFIX)}
     factors |= {k: r["params"][k] for k in factor_params if k in r["params"] and k not in factors}
     label = tags.get("gdwm.row") or r["name"] or r["run_id"][:8]
-    return Row(r["run_id"], label, r["status"], experiment_id, dict(r["metrics"]), factors, dict(tags))
+    children = []
+    if tags.get("gdwm.kind") in ROW_KINDS:
+        children = _search(backend, f"tags.`{MLFLOW_PARENT_RUN_ID}` = '{r['run_id']}'", selector)
+        children = [c for c in children if c["tags"].get("gdwm.kind") == TRIAL_KIND]
+    trials = sorted(map(_trial, children), key=lambda t: (t.seed is None, t.seed or 0)) or [_trial(r)]
+    seeds = [s for s in tags.get("gdwm.seeds", "").split(",") if s.strip()] if children else []
+    row = Row(r["run_id"], label, r["status"], backend.experiment_id, dict(r["metrics"]), factors, dict(tags), trials)
+    row.planned = max(len(seeds), len(trials))
+    return row
 
 
 def _order(runs: list[dict]) -> list[dict]:
@@ -87,6 +146,10 @@ def _search(backend: TrackingBackend, filter_string: str, selector: str, **kw) -
         raise SelectionError(f"{selector}: {e.message}") from e
 
 
+def _sweep_ids(backend: TrackingBackend, selector: str) -> set[str]:
+    return {r["run_id"] for r in _search(backend, "tags.`gdwm.kind` = 'sweep'", selector)}
+
+
 def select(
     backend: TrackingBackend,
     sweep: str | None = None,
@@ -94,7 +157,8 @@ def select(
     filter_string: str | None = None,
     factor_params: list[str] | None = None,
 ) -> Selection:
-    """The rows picked by exactly one of ``sweep``, ``runs``, ``filter_string`` (none: every comparable run)."""
+    """The rows picked by exactly one of ``sweep``, ``runs``, ``filter_string`` (none: every row and plain run),
+    each with its trials."""
     given = [k for k, v in (("args.sweep", sweep), ("args.runs", runs), ("args.filter", filter_string)) if v]
     if len(given) > 1:
         raise SelectionError(f"give one selector, not {' and '.join(given)}")
@@ -112,7 +176,7 @@ def select(
             raise SelectionError(f"{selector}: no sweep named '{sweep}' in experiment '{backend.experiment}'")
         sweep_run_id = parents[0]["run_id"]
         found = _search(backend, f"tags.`{MLFLOW_PARENT_RUN_ID}` = '{sweep_run_id}'", selector)
-        found = _order([r for r in found if r["tags"].get("gdwm.kind") == "trial"])
+        found = _order([r for r in found if r["tags"].get("gdwm.kind") in ("row", TRIAL_KIND)])
         name = sweep
     elif runs:
         selector = f"args.runs={list(runs)}"
@@ -126,39 +190,53 @@ def select(
     else:
         selector = f"args.filter={filter_string!r}" if filter_string else "all runs"
         found = _search(backend, filter_string or "", selector, order_by=["attributes.start_time ASC"])
-        found = [r for r in found if r["tags"].get("gdwm.kind") in ROW_KINDS]
+        if any(r["tags"].get("gdwm.kind") == TRIAL_KIND for r in found):
+            sweeps = _sweep_ids(backend, selector)  # a trial right under a sweep is an old store's row
+        else:
+            sweeps = set()
+        found = [
+            r
+            for r in found
+            if r["tags"].get("gdwm.kind") in ROW_KINDS
+            or (r["tags"].get("gdwm.kind") == TRIAL_KIND and r["tags"].get(MLFLOW_PARENT_RUN_ID) in sweeps)
+        ]
         name = "filter" if filter_string else "all"
     if not found:
         raise SelectionError(
             f"{selector}: no runs tagged gdwm.kind in {list(ROW_KINDS)} in experiment '{backend.experiment}' "
             f"of {backend.uri}"
         )
-    rows = [_row(r, backend.experiment_id, factor_params) for r in found]
+    rows = [_row(backend, r, factor_params, selector) for r in found]
     return Selection(name, selector, rows, sweep_run_id)
 
 
-def stage_runs(backend: TrackingBackend, row: Row) -> list[dict]:
-    """The stage runs ``row`` used: its children, runs tagged ``gdwm.trial=<row>``, and runs it links by tag."""
+def stage_runs(backend: TrackingBackend, run_id: str, tags: dict[str, str]) -> list[dict]:
+    """The stage runs a row or trial used: its children, runs tagged ``gdwm.trial=<it>``, and runs it links."""
     found: dict[str, dict] = {}
-    for f in (f"tags.`{MLFLOW_PARENT_RUN_ID}` = '{row.run_id}'", f"tags.`gdwm.trial` = '{row.run_id}'"):
+    for f in (f"tags.`{MLFLOW_PARENT_RUN_ID}` = '{run_id}'", f"tags.`gdwm.trial` = '{run_id}'"):
         found |= {r["run_id"]: r for r in backend.search_runs(f)}
-    for key, run_id in row.tags.items():
-        if key.startswith(STAGE_LINK_PREFIX) and run_id not in found:
+    for key, linked in tags.items():
+        if key.startswith(STAGE_LINK_PREFIX) and linked not in found:
             try:
-                found[run_id] = _run_dict(backend.client.get_run(run_id))
+                found[linked] = _run_dict(backend.client.get_run(linked))
             except MlflowException:
                 continue  # a deleted stage run: its curves are simply absent
     return [r for r in found.values() if STAGE_TAG in r["tags"]]
 
 
 def training_curves(backend: TrackingBackend, row: Row) -> dict[str, list[tuple[int, float]]]:
-    """``<stage>/<metric>`` -> (step, value) of every metric a stage run logged at more than one step."""
-    curves = {}
-    for r in stage_runs(backend, row):
-        for key in sorted(r["metrics"]):
-            if key.startswith("system/"):
-                continue
-            history = backend.metric_history(r["run_id"], key)
-            if len({step for step, _ in history}) > 1:
-                curves[f"{r['tags'][STAGE_TAG]}/{key}"] = history
-    return curves
+    """``<stage>/<metric>`` -> (step, value) of every metric a stage run logged at more than one step: those of the
+    row run's stage runs, else of its first trial (lowest seed) that has any, as a row has one line per plot."""
+    owners = [(row.run_id, row.tags)] + [(t.run_id, t.tags) for t in row.trials if t.run_id != row.run_id]
+    for run_id, tags in owners:
+        curves = {}
+        for r in stage_runs(backend, run_id, tags):
+            for key in sorted(r["metrics"]):
+                if key.startswith("system/"):
+                    continue
+                history = backend.metric_history(r["run_id"], key)
+                if len({step for step, _ in history}) > 1:
+                    curves[f"{r['tags'][STAGE_TAG]}/{key}"] = history
+        if curves:
+            return curves
+    return {}

@@ -1,7 +1,8 @@
-"""The comparison table: factor columns, grouped metric columns, best / second-best marks per column.
+"""The comparison table: factor columns, grouped metric columns, cells with their uncertainty, earned marks.
 
-Marks are direction-aware and compare values at the shown precision, so values that print the same tie and share
-a mark (as in the paper's tables). Missing values and failed rows never get or take a mark.
+A cell is the mean over a row's finished seeds with its std (or, for one seed, a bootstrap interval over the
+held-out samples); bold / underline are given by significance tests (``stats``), and ``legend`` says which.
+Missing values and failed rows never get or take a mark.
 """
 
 from __future__ import annotations
@@ -12,17 +13,11 @@ from itertools import groupby
 
 from gdwm.compare.layout import Column, Direction, LayoutConfig, resolve_columns
 from gdwm.compare.runs import Row
+from gdwm.compare.stats import BEST, SECOND, Cell, RowInput, Seed, Settings, analyse
 
-BEST, SECOND = "best", "second"
+__all__ = ["BEST", "MISSING", "SECOND", "Table", "build_table", "normalise"]
+
 MISSING = "–"
-
-
-def mark_column(values: list[float | None], direction: Direction, precision: int) -> list[str | None]:
-    """``best`` / ``second`` / None per value; None values are excluded; ties share a mark."""
-    shown = [None if v is None or math.isnan(v) else round(v, precision) for v in values]
-    ranked = sorted({v for v in shown if v is not None}, reverse=direction is Direction.higher)
-    place = {v: mark for v, mark in zip(ranked, (BEST, SECOND), strict=False)}
-    return [place.get(v) if v is not None else None for v in shown]
 
 
 def normalise(values: list[float | None], direction: Direction) -> list[float | None]:
@@ -52,15 +47,44 @@ class Table:
     columns: list[Column]
     rows: list[Row]
     precision: int = 2
+    cells: dict[tuple[int, str], Cell] = field(default_factory=dict)
+    """(row index, metric) -> mean, std, n and interval; absent = not logged."""
     marks: dict[tuple[int, str], str] = field(default_factory=dict)
     """(row index, metric) -> ``best`` | ``second``."""
+    legend: str = ""
+    """What the cells and marks mean and which test gave the marks; every format prints it."""
+
+    def cell(self, i: int, metric: str) -> Cell | None:
+        return self.cells.get((i, metric))
 
     def value(self, i: int, metric: str) -> float | None:
-        v = self.rows[i].metrics.get(metric)
-        return None if v is None or math.isnan(v) else v
+        """The mean over the row's seeds (what deltas, bars and the radar use)."""
+        c = self.cells.get((i, metric))
+        return None if c is None else c.mean
 
     def fmt(self, v: float | None) -> str:
         return MISSING if v is None else f"{v:.{self.precision}f}"
+
+    def parts(self, i: int, metric: str) -> tuple[str, str, str]:
+        """(value, uncertainty, count): ``35.10``, ``± 1.20`` or ``[33.02, 37.21]`` or empty, ``(n=2)`` or empty.
+
+        The count shows when fewer seeds than planned finished; a failed row shows its values alone."""
+        c = self.cells.get((i, metric))
+        if c is None:
+            return MISSING, "", ""
+        if self.rows[i].failed:
+            return self.fmt(c.mean), "", ""
+        if c.std is not None:
+            unc = f"± {self.fmt(c.std)}"
+        elif c.ci_low is not None and c.ci_high is not None:
+            unc = f"[{self.fmt(c.ci_low)}, {self.fmt(c.ci_high)}]"
+        else:
+            unc = ""
+        return self.fmt(c.mean), unc, f"(n={c.n})" if c.n < self.rows[i].planned else ""
+
+    def text(self, i: int, metric: str) -> str:
+        """The cell as one line: ``35.10 ± 1.20 (n=2)``."""
+        return " ".join(filter(None, self.parts(i, metric)))
 
     def factor(self, i: int, name: str) -> str:
         return self.rows[i].factors.get(name, MISSING)
@@ -81,7 +105,7 @@ class Table:
         raise KeyError(key)
 
     def deltas(self, base: int) -> list[list[float | None]]:
-        """Per row and column: value - baseline value (None where either is missing)."""
+        """Per row and column: mean - baseline mean (None where either is missing)."""
         out = []
         for i in range(len(self.rows)):
             row = []
@@ -92,14 +116,18 @@ class Table:
         return out
 
 
-def build_table(rows: list[Row], layout: LayoutConfig) -> Table:
-    """Columns from the layout (plus discovered ones); factors in order of first appearance; marks per column."""
-    columns = resolve_columns(layout, {m for r in rows for m in r.metrics})
+def row_input(row: Row) -> RowInput:
+    """What the statistics need of a row: its counted trials' metrics and sample sets, planned seeds, failure."""
+    seeds = [Seed(t.metrics, t.samples, t.seed) for t in row.counted]
+    return RowInput(row.label, seeds, row.planned, row.failed)
+
+
+def build_table(rows: list[Row], layout: LayoutConfig, settings: Settings | None = None) -> Table:
+    """Columns from the layout (plus discovered ones), factors in order of first appearance, then per cell its
+    mean and uncertainty and per column the marks the tests earn (``stats.analyse``)."""
+    logged = {m for r in rows for t in r.trials for m in t.metrics}
+    columns = resolve_columns(layout, logged)
     factors = list(dict.fromkeys(f for r in rows for f in r.factors))
-    table = Table(layout.title or layout.name, factors, columns, rows, layout.precision)
-    for c in columns:
-        values = [None if r.failed else table.value(i, c.metric) for i, r in enumerate(rows)]
-        for i, mark in enumerate(mark_column(values, c.direction, layout.precision)):
-            if mark:
-                table.marks[i, c.metric] = mark
-    return table
+    metrics = [(c.metric, c.direction) for c in columns]
+    a = analyse([row_input(r) for r in rows], metrics, settings or Settings(), layout.precision)
+    return Table(layout.title or layout.name, factors, columns, rows, layout.precision, a.cells, a.marks, a.legend)

@@ -72,7 +72,7 @@ def test_every_ablation_row_trains_two_steps_per_stage(row, synth_small, distill
     _label, d_z, world, selector, fine, align = row
     dirs = distilled16 if d_z == 16 else distilled3
     comp = components(world, selector, fine, align)
-    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), dirs)
+    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), dirs, seed=0)
     ds = GSQADataset(synth_small)
     samples, _ = load_samples(ds, "train", dirs, need_gaussians=comp.world.gaussian_tokens)
     store = FrameStore(ds, dirs, "clear", 3)
@@ -105,7 +105,7 @@ def test_every_ablation_row_trains_two_steps_per_stage(row, synth_small, distill
 
 def test_saved_world_model_answers_the_same_after_reload(synth_small, distilled16, tiny_llm_dir, tmp_path):
     comp = components({}, "driving_aware", "query_xattn", "kl")
-    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), distilled16)
+    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), distilled16, seed=0)
     model.add_lora(LoraStageConfig(rank=4, alpha=8, dropout=0.0))
     with torch.no_grad():
         for n, p in model.lm.named_parameters():
@@ -129,7 +129,7 @@ def test_saved_world_model_answers_the_same_after_reload(synth_small, distilled1
 
 def test_zero_shot_and_no_gaussian_models_answer_without_world_tokens(synth_small, distilled16, tiny_llm_dir):
     comp = components({"gaussian_tokens": False}, "random", "identity", "none")
-    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), distilled16)
+    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), distilled16, seed=0)
     assert len(model.decoders) == 0
     ds = GSQADataset(synth_small)
     samples, _ = load_samples(ds, "train", {}, need_gaussians=False)
@@ -157,7 +157,7 @@ def test_an_empty_frame_gives_padding_tokens_and_a_finite_loss(synth_small, dist
     empty |= {"opacity": np.zeros(0, np.float32), "feature": np.zeros((0, 16), np.float32)}
     write_arrow(gaussians_table(empty, where="empty"), dirs[s.scene] / "gaussians" / f"{s.frame:05d}.arrow")
     comp = components({}, "driving_aware", "query_xattn", "kl")
-    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), dirs)
+    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), dirs, seed=0)
     store = FrameStore(ds, dirs, "clear", 3)
     enc = model.encode([s], store, with_answer=True)
     z, z_mask = model.world_tokens([s], store, enc)
@@ -168,7 +168,7 @@ def test_an_empty_frame_gives_padding_tokens_and_a_finite_loss(synth_small, dist
 
 def test_condition_gives_the_prompt_hidden_states_that_depend_on_the_scene(synth_small, distilled16, tiny_llm_dir):
     comp = components({}, "driving_aware", "query_xattn", "kl")
-    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), distilled16)
+    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), distilled16, seed=0)
     model.eval()
     ds = GSQADataset(synth_small)
     samples, _ = load_samples(ds, "train", distilled16, need_gaussians=True)

@@ -1,0 +1,376 @@
+"""Uncertainty of every cell and significance-earned marks, from per-seed metrics and per-sample predictions.
+
+Pure (no MLflow; ``runs`` and ``samples`` read what it needs). The statistics are scipy.stats':
+
+- n >= 2 seeds: mean ± std (ddof=1); the interval is a bootstrap over held-out samples of the seed-mean when
+  every seed kept its predictions, else Student's t over the seeds (``scipy.stats.t.interval``);
+- one seed: a bootstrap interval over its held-out samples, the stage's scorer recomputing corpus metrics (CIDEr,
+  mAP) on every resample; without per-sample data, no interval;
+- one ``scipy.stats.bootstrap`` per evaluation stage resamples the sample ids every row shares and returns every
+  row's value and every pairwise difference, so intervals and paired differences come from the same resamples;
+- per column, the best row and every row not significantly different from it are bold; of the rest, the top one
+  and every row not significantly different from it are underlined. A pair is told apart by the paired bootstrap
+  CI of its difference when both rows have samples, else by Welch's t-test over seeds, else not at all.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable, Hashable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from itertools import combinations
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from gdwm.compare.layout import Direction
+
+BEST, SECOND = "best", "second"
+
+
+@dataclass(frozen=True)
+class SampleSet:
+    """One trial's per-sample predictions of one evaluation stage and the function that scores any subset."""
+
+    ids: Sequence[Hashable]
+    """``sample_id`` of each table row, in table order (unique)."""
+    table: Any
+    """The predictions: a ``pyarrow.Table`` (anything with ``take(indices)``)."""
+    scorer: Callable[[Any], Mapping[str, float]]
+    """Recomputes the stage's metrics (the logged names) from any subset of the table's rows, in the given order."""
+
+
+@dataclass
+class Seed:
+    """One trial of a row: its metrics and, per evaluation stage, the predictions they came from."""
+
+    metrics: Mapping[str, float]
+    samples: Mapping[str, SampleSet] = field(default_factory=dict)
+    seed: int | None = None
+
+
+@dataclass
+class RowInput:
+    """A table row as the statistics see it: the trials that count (every finished seed)."""
+
+    label: str
+    seeds: list[Seed]
+    planned: int = 1
+    """Seeds the row was meant to have; cells with fewer show their n."""
+    failed: bool = False
+    """A failed row is shown but never gets or takes a mark."""
+
+
+@dataclass(frozen=True)
+class Settings:
+    alpha: float = 0.05
+    """Significance level of the tests behind the marks."""
+    confidence: float = 0.95
+    """Coverage of the intervals of the cells."""
+    n_resamples: int = 1000
+    """Bootstrap resamples (each scores every row's predictions once)."""
+    seed: int = 0
+    """Seed of the resampling: the same inputs give the same intervals and marks."""
+    method: str = "BCa"
+    """``scipy.stats.bootstrap`` method; where BCa is degenerate (NaN) the percentile interval is used."""
+
+
+@dataclass(frozen=True)
+class Cell:
+    mean: float
+    """Mean over the seeds that logged the metric."""
+    n: int
+    """Seeds behind the value."""
+    std: float | None = None
+    """Sample std over the seeds (ddof=1); None for one seed."""
+    ci_low: float | None = None
+    """Interval of the mean at ``Settings.confidence``; None without one."""
+    ci_high: float | None = None
+    interval: str | None = None
+    """``bootstrap`` (over held-out samples), ``t`` (Student's t over seeds) or None."""
+
+
+@dataclass
+class Bootstrap:
+    """One stage's paired bootstrap: intervals of every row's value and of every pairwise difference."""
+
+    stage: str
+    n_samples: int
+    """Sample ids every included row and seed shares (what was resampled)."""
+    largest: int
+    """Size of the largest sample set before aligning."""
+    seeds: list[int]
+    """Seeds per included row."""
+    values: dict[tuple[int, str], tuple[float, float]] = field(default_factory=dict)
+    """(row, metric) -> interval of the seed-mean at ``confidence``."""
+    diffs: dict[tuple[int, int, str], tuple[float, float]] = field(default_factory=dict)
+    """(row a, row b, metric) -> two-sided interval of a - b at 1 - alpha."""
+    fell_back: bool = False
+    """Some interval is the percentile one because the configured method gave NaN (a degenerate distribution)."""
+
+
+@dataclass
+class Analysis:
+    cells: dict[tuple[int, str], Cell]
+    marks: dict[tuple[int, str], str]
+    """(row, metric) -> ``best`` | ``second``."""
+    legend: str
+
+
+def seed_cell(values: Sequence[float], confidence: float = 0.95) -> Cell:
+    """Mean, std (ddof=1) and the Student-t interval of the mean over n >= 2 seeds; the value alone for one."""
+    x = np.asarray(values, dtype=float)
+    mean = float(x.mean())
+    if len(x) < 2:
+        return Cell(mean, 1)
+    std = float(x.std(ddof=1))
+    if std == 0.0:  # scipy's t.interval is NaN at scale 0; identical seeds pin the mean
+        return Cell(mean, len(x), std, mean, mean, "t")
+    low, high = stats.t.interval(confidence, len(x) - 1, loc=mean, scale=std / math.sqrt(len(x)))
+    return Cell(mean, len(x), std, float(low), float(high), "t")
+
+
+def welch_p(a: Sequence[float], b: Sequence[float]) -> float:
+    """Two-sided p of Welch's t-test (``ttest_ind(equal_var=False)``); NaN when both are constant and equal."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # near-constant seeds: scipy warns, the p is still right
+        return float(stats.ttest_ind(a, b, equal_var=False).pvalue)
+
+
+def _align(stage: str, sets: Mapping[int, Sequence[SampleSet]], labels: Mapping[int, str]) -> tuple[list, list]:
+    """The ids every set shares (in the first set's order) and, per set, the table positions of those ids."""
+    index = []
+    for i, seeds in sets.items():
+        for k, s in enumerate(seeds):
+            pos = {sid: p for p, sid in enumerate(s.ids)}
+            if len(pos) != len(s.ids):
+                raise ValueError(f"row {labels[i]}, trial {k}, stage {stage}: sample_id repeats in its predictions")
+            index.append(pos)
+    shared = set(index[0]).intersection(*index[1:])
+    common = [sid for sid in next(iter(sets.values()))[0].ids if sid in shared]
+    return common, [np.array([pos[sid] for sid in common], dtype=np.intp) for pos in index]
+
+
+def _interval(data, statistic, res, level: float, settings: Settings) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Interval of every component at ``level`` from ``res``'s resamples (no new ones), the percentile one where
+    ``settings.method`` gives NaN; returns (low, high, whether it fell back)."""
+    method = settings.method
+    kw = {"vectorized": False, "n_resamples": 0, "bootstrap_result": res, "confidence_level": level}
+    same = math.isclose(level, settings.confidence)  # res holds the intervals at settings.confidence
+    ci = res.confidence_interval if same else stats.bootstrap(data, statistic, method=method, **kw).confidence_interval
+    low, high = np.atleast_1d(ci.low).astype(float), np.atleast_1d(ci.high).astype(float)
+    bad = np.isnan(low) | np.isnan(high)
+    if bad.any() and method.lower() != "percentile":
+        p = stats.bootstrap(data, statistic, method="percentile", **kw).confidence_interval
+        low[bad], high[bad] = np.atleast_1d(p.low)[bad], np.atleast_1d(p.high)[bad]
+    return low, high, bool(bad.any())
+
+
+def paired_bootstrap(
+    stage: str,
+    sets: Mapping[int, Sequence[SampleSet]],
+    metrics: Sequence[str],
+    settings: Settings = Settings(),
+    labels: Mapping[int, str] | None = None,
+) -> Bootstrap | None:
+    """One ``scipy.stats.bootstrap`` over the sample ids all rows' sets share: row -> its seeds' sample sets.
+
+    The statistic is, for every metric the scorers return, each row's seed-mean then each pairwise difference;
+    each (row, seed) table is scored once per resample, its rows taken in their original order (grounding mAP
+    ranks by row order). None when fewer than two ids are shared or no scorer returns one of ``metrics``."""
+    rows = list(sets)
+    labels = labels or {i: str(i) for i in rows}
+    common, positions = _align(stage, sets, labels)
+    if len(common) < 2:
+        return None
+    flat = list(zip((s for i in rows for s in sets[i]), positions, strict=True))
+    names = [f"row {labels[i]}, trial {k}" for i in rows for k in range(len(sets[i]))]
+
+    def score(j: int, idx: np.ndarray) -> Mapping[str, float]:
+        s, pos = flat[j]
+        try:
+            return s.scorer(s.table.take(np.sort(pos[idx])))
+        except Exception as e:  # the scorer is pipeline code: say whose predictions it failed on
+            raise ValueError(f"{names[j]}, stage {stage}: its scorer failed on {len(idx)} samples: {e!r}") from e
+
+    full = [score(j, np.arange(len(common))) for j in range(len(flat))]
+    found = [m for m in metrics if all(m in out for out in full)]
+    if not found:
+        return None
+    seeds = [len(sets[i]) for i in rows]
+    starts = np.cumsum([0, *seeds])
+    pairs = list(combinations(range(len(rows)), 2))
+    ia, ib = np.array([a for a, _ in pairs], dtype=np.intp), np.array([b for _, b in pairs], dtype=np.intp)
+
+    def statistic(idx: np.ndarray) -> np.ndarray:
+        idx = np.asarray(idx, dtype=np.intp)
+        scored = np.array([[out[m] for m in found] for out in (score(j, idx) for j in range(len(flat)))], dtype=float)
+        values = np.stack([scored[starts[r] : starts[r + 1]].mean(axis=0) for r in range(len(rows))])
+        return np.concatenate([values.ravel(), (values[ia] - values[ib]).ravel()])
+
+    data = (np.arange(len(common)),)
+    with warnings.catch_warnings():
+        # a metric constant on every resample (0 everywhere) makes BCa NaN with a warning: the percentile fallback
+        warnings.simplefilter("ignore", stats.DegenerateDataWarning)
+        warnings.simplefilter("ignore", RuntimeWarning)
+        res = stats.bootstrap(
+            data,
+            statistic,
+            n_resamples=settings.n_resamples,
+            vectorized=False,
+            confidence_level=settings.confidence,
+            method=settings.method,
+            rng=np.random.default_rng(settings.seed),
+        )
+        low, high, fell_back = _interval(data, statistic, res, settings.confidence, settings)
+        dlow, dhigh, dfell = _interval(data, statistic, res, 1 - settings.alpha, settings)
+    nv = len(rows) * len(found)
+    largest = max(len(s.ids) for i in rows for s in sets[i])
+    out = Bootstrap(stage, len(common), largest, seeds, fell_back=fell_back or dfell)
+    for r, i in enumerate(rows):
+        for k, m in enumerate(found):
+            out.values[i, m] = (float(low[r * len(found) + k]), float(high[r * len(found) + k]))
+    for p, (a, b) in enumerate(pairs):
+        for k, m in enumerate(found):
+            j = nv + p * len(found) + k
+            out.diffs[rows[a], rows[b], m] = (float(dlow[j]), float(dhigh[j]))
+    return out
+
+
+def rank_marks(
+    means: Mapping[int, float], direction: Direction, better: Callable[[int, int], bool], precision: int = 2
+) -> dict[int, str]:
+    """``best`` for the top row and every row it is not significantly ``better`` than; ``second`` likewise among
+    the rest. No marks when every value prints the same (at ``precision``)."""
+    if len({round(v, precision) for v in means.values()}) < 2:
+        return {}
+    order = sorted(means, key=lambda i: means[i], reverse=direction is Direction.higher)
+    marks = {order[0]: BEST} | {j: BEST for j in order[1:] if not better(order[0], j)}
+    rest = [j for j in order if j not in marks]
+    if rest:
+        marks |= {rest[0]: SECOND} | {j: SECOND for j in rest[1:] if not better(rest[0], j)}
+    return marks
+
+
+def analyse(
+    rows: Sequence[RowInput],
+    columns: Sequence[tuple[str, Direction]],
+    settings: Settings = Settings(),
+    precision: int = 2,
+) -> Analysis:
+    """Cells (with intervals), marks and the legend for ``columns`` (metric, direction) of ``rows``."""
+    labels = {i: r.label for i, r in enumerate(rows)}
+    values: dict[tuple[int, str], list[float]] = {}
+    for i, r in enumerate(rows):
+        for m, _ in columns:
+            xs = [float(s.metrics[m]) for s in r.seeds if m in s.metrics and not math.isnan(s.metrics[m])]
+            if xs:
+                values[i, m] = xs
+    cells = {key: seed_cell(xs, settings.confidence) for key, xs in values.items()}
+
+    boots: list[Bootstrap] = []
+    todo = [m for m, _ in columns]
+    for stage in sorted({st for r in rows if not r.failed for s in r.seeds for st in s.samples}):
+        sets = {
+            i: [s.samples[stage] for s in r.seeds]
+            for i, r in enumerate(rows)
+            if not r.failed and r.seeds and all(stage in s.samples for s in r.seeds)
+        }
+        b = paired_bootstrap(stage, sets, todo, settings, labels) if sets else None
+        if b is None:
+            continue
+        boots.append(b)
+        for (i, m), (low, high) in b.values.items():
+            if (i, m) in cells and not (math.isnan(low) or math.isnan(high)):
+                cells[i, m] = replace(cells[i, m], ci_low=low, ci_high=high, interval="bootstrap")
+        todo = [m for m in todo if not any(key[1] == m for key in b.values)]
+
+    diffs = {k: v for b in boots for k, v in b.diffs.items()}
+    used: set[str] = set()
+
+    def better(a: int, b: int, metric: str, direction: Direction) -> bool:
+        """Row a significantly better than row b on ``metric``."""
+        d = diffs.get((a, b, metric)) or (
+            (-diffs[b, a, metric][1], -diffs[b, a, metric][0]) if (b, a, metric) in diffs else None
+        )
+        if d is not None and not math.isnan(d[0]) and not math.isnan(d[1]):
+            used.add("bootstrap")
+            return d[0] > 0 if direction is Direction.higher else d[1] < 0
+        if cells[a, metric].n >= 2 and cells[b, metric].n >= 2:
+            used.add("welch")
+            ahead = (cells[a, metric].mean > cells[b, metric].mean) == (direction is Direction.higher)
+            return ahead and welch_p(values[a, metric], values[b, metric]) < settings.alpha
+        used.add("untested")
+        return False
+
+    live = {key: c for key, c in cells.items() if not rows[key[0]].failed}
+    seeded = any(c.n >= 2 for c in live.values())
+    marks: dict[tuple[int, str], str] = {}
+    for m, direction in columns:
+        means = {i: c.mean for (i, mm), c in live.items() if mm == m and (c.n >= 2 or not seeded)}
+        col = rank_marks(means, direction, lambda a, b, m=m, d=direction: better(a, b, m, d), precision)
+        marks |= {(i, m): mark for i, mark in col.items()}
+    return Analysis(cells, marks, legend(rows, live, boots, used, settings, seeded, bool(marks)))
+
+
+def _count(ns: Sequence[int], noun: str) -> str:
+    lo, hi = min(ns), max(ns)
+    return f"{lo} {noun}" + ("" if hi == 1 else "s") if lo == hi else f"{lo}–{hi} {noun}s"
+
+
+def legend(
+    rows: Sequence[RowInput],
+    live: Mapping[tuple[int, str], Cell],
+    boots: Sequence[Bootstrap],
+    used: set[str],
+    settings: Settings,
+    seeded: bool,
+    marked: bool,
+) -> str:
+    """What the marks mean and which test earned them, what the uncertainty is, and which cells lack seeds."""
+    alpha, pct = f"α = {settings.alpha:g}", f"{settings.confidence * 100:g}%"
+    out = []
+    if marked:
+        tests = []
+        if "bootstrap" in used:
+            samples = " and ".join(f"{b.n_samples}" + (f" ({b.stage})" if len(boots) > 1 else "") for b in boots)
+            method = settings.method
+            if any(b.fell_back for b in boots):
+                method += f", percentile where {settings.method} was degenerate"
+            seeds = _count([n for b in boots for n in b.seeds], "seed")
+            tests.append(
+                f"paired bootstrap over {samples} held-out samples, {seeds}, "
+                f"{(1 - settings.alpha) * 100:g}% {method} CI of the difference, {alpha}, "
+                f"{settings.n_resamples} resamples"
+            )
+        if "welch" in used:
+            tests.append(f"{'else ' if tests else ''}Welch's t-test over seeds, {alpha}")
+        if "untested" in used:
+            tests.append("rows with one seed and no per-sample data cannot be told apart")
+        out.append(
+            "Bold: best; underlined: second. Rows whose difference is not significant share a mark "
+            f"({'; '.join(tests)})."
+        )
+    kinds = []
+    if any(c.n >= 2 for c in live.values()):
+        kinds.append("mean ± std over n seeds")
+    if any(c.n == 1 and c.interval == "bootstrap" for c in live.values()):
+        kinds.append(f"one seed: value [{pct} bootstrap CI over held-out samples]")
+    if any(c.n == 1 and c.interval is None for c in live.values()):
+        kinds.append("one seed without per-sample data: the value alone")
+    if kinds:
+        out.append(f"Cells: {'; '.join(kinds)}.")
+    short = sorted({rows[i].planned for (i, _), c in live.items() if c.n < rows[i].planned})
+    if short:
+        planned = str(short[0]) if len(short) == 1 else "the planned"
+        out.append(f"(n=k): k of {planned} seeds finished.")
+    if seeded and marked and any(c.n < 2 for c in live.values()):
+        out.append("Cells of one seed take no mark.")
+    for b in boots:
+        if b.n_samples < b.largest:
+            out.append(
+                f"{b.stage}: rows are compared on the {b.n_samples} sample ids they all share (of up to {b.largest})."
+            )
+    return " ".join(out)
