@@ -73,7 +73,7 @@ def answer_all(ctx: StageContext, model_dir: Path, samples: list[QASample], cfg:
 
 
 @stage("evaluate_qa", "1", config=["stage.evaluate_qa"], upstream=["lora", "distill"], resources="eval",
-       evaluation=True, samples="predictions.parquet", score=score_table)  # fmt: skip
+       evaluation=True, samples="predictions.parquet", score=score_table, strata="task")  # fmt: skip
 def evaluate_qa(ctx: StageContext) -> dict:
     cfg = EvaluateQAConfig(**ctx.cfg("stage.evaluate_qa"))
     model_dir = ctx.upstream["lora"].path

@@ -272,29 +272,27 @@ SAMPLES_DIR = "samples"
 """Where a regression run keeps its trials' per-sample tables: ``samples/<stage>/seed_<N>.parquet``."""
 
 
-def _log_samples(backend, run_id: str, samples: dict[int, dict[str, tuple[Path, str]]]) -> None:
-    """Each seed's per-sample tables and their scorers (``gdwm.scorer.<stage>``): what a later run's bootstrap
-    test compares against when this run is its baseline."""
-    scorers = {}
+def _log_samples(backend, run_id: str, samples: dict[int, dict]) -> None:
+    """Each seed's per-sample tables and how to rescore them (``gdwm.scorer.<stage>``, ``gdwm.strata.<stage>``):
+    what a later run's bootstrap test compares against when this run is its baseline."""
+    tags = {}
     with tempfile.TemporaryDirectory() as tmp:
         for seed, stages in samples.items():
-            for stage, (path, scorer) in stages.items():
-                named = Path(tmp) / stage / f"seed_{seed}{path.suffix}"
+            for stage, smp in stages.items():
+                named = Path(tmp) / stage / f"seed_{seed}{smp.path.suffix}"
                 named.parent.mkdir(parents=True, exist_ok=True)
-                named.write_bytes(path.read_bytes())
+                named.write_bytes(smp.path.read_bytes())
                 backend.log_artifact(run_id, str(named), f"{SAMPLES_DIR}/{stage}")
-                scorers[f"gdwm.scorer.{stage}"] = scorer
-    if scorers:
-        backend.set_tags(run_id, scorers)
+                tags |= {k: v for k, v in smp.tags(stage, f"{SAMPLES_DIR}/{stage}").items()}
+    if tags:
+        backend.set_tags(run_id, tags)
 
 
-def _paired(backend, bench: BenchmarkConfig, base_id: str, now: dict[int, dict[str, tuple[Path, str]]]) -> Paired:
+def _paired(backend, bench: BenchmarkConfig, base_id: str, now: dict[int, dict]) -> Paired:
     """metric -> interval of (now - baseline): a paired bootstrap over the held-out samples both runs answered, each
     side the mean over its seeds (``gdwm.compare.stats``)."""
-    import pyarrow.parquet as pq
-
-    from gdwm.compare.samples import quiet_downloads, scorer
-    from gdwm.compare.stats import SampleSet, Settings, paired_bootstrap
+    from gdwm.compare.samples import quiet_downloads, sample_set, scorer
+    from gdwm.compare.stats import Settings, paired_bootstrap
 
     tags = backend.client.get_run(base_id).data.tags
     settings = Settings(alpha=bench.alpha, confidence=1 - bench.alpha, n_resamples=bench.resamples)
@@ -307,14 +305,13 @@ def _paired(backend, bench: BenchmarkConfig, base_id: str, now: dict[int, dict[s
             files = backend.client.list_artifacts(base_id, f"{SAMPLES_DIR}/{stage}") if spec else []
             if not files:
                 continue
-            fn = scorer(spec)
-
-            def load(path: str, fn=fn) -> SampleSet:
-                t = pq.read_table(path)
-                return SampleSet(t["sample_id"].to_pylist(), t, fn)
-
-            base = [load(backend.client.download_artifacts(base_id, f.path, tmp)) for f in files]
-            mine = [load(str(per[stage][0])) for per in now.values() if stage in per]
+            fn, strata = scorer(spec), tags.get(f"gdwm.strata.{stage}")
+            base = [
+                sample_set(backend.client.download_artifacts(base_id, f.path, tmp), fn, strata, f.path) for f in files
+            ]
+            mine = [
+                sample_set(per[stage].path, fn, strata, str(per[stage].path)) for per in now.values() if stage in per
+            ]
             b = paired_bootstrap(stage, {0: base, 1: mine}, metrics, settings, {0: "baseline", 1: "now"})
             if b is not None:
                 out |= {m: (-hi, -lo) for (_, _, m), (lo, hi) in b.diffs.items()}  # diffs are baseline - now

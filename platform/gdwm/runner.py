@@ -238,19 +238,35 @@ def evaluation_metrics(pipe: Pipeline, results: dict[str, StageResult]) -> dict[
     return out
 
 
-def evaluation_samples(pipe: Pipeline, results: dict[str, StageResult]) -> dict[str, tuple[Path, str]]:
-    """Stage -> (per-sample table, ``module:function`` of its scorer) of the evaluation stages that keep one."""
+@dataclass(frozen=True)
+class Samples:
+    """An evaluation stage's per-sample table and how to rescore it (``StageDef.samples``, ``score``, ``strata``)."""
+
+    path: Path
+    scorer: str
+    """``module:function``."""
+    strata: str | None = None
+
+    def tags(self, stage: str, artifact: str) -> dict[str, str]:
+        """What a run carries so ``gdwm compare`` and ``gdwm regress`` can resample it (``artifact``: where it is)."""
+        out = {f"gdwm.samples.{stage}": artifact, f"gdwm.scorer.{stage}": self.scorer}
+        return out | ({f"gdwm.strata.{stage}": self.strata} if self.strata else {})
+
+
+def evaluation_samples(pipe: Pipeline, results: dict[str, StageResult]) -> dict[str, Samples]:
+    """Stage -> its per-sample table and scorer, for the evaluation stages that keep one."""
     out = {}
     for name, r in results.items():
         sd = pipe.stages[name]
         if sd.evaluation and sd.samples and r.path and (Path(r.path) / sd.samples).is_file():
-            out[name] = (Path(r.path) / sd.samples, f"{sd.score.__module__}:{sd.score.__qualname__}")
+            out[name] = Samples(Path(r.path) / sd.samples, f"{sd.score.__module__}:{sd.score.__qualname__}", sd.strata)
     return out
 
 
 def report_evaluation(sink, run_id: str, pipe: Pipeline, results: dict[str, StageResult]) -> dict[str, float]:
-    """The evaluation stages' metrics, per-sample tables (``<stage>/*.parquet``) and their scorers (tags
-    ``gdwm.samples.<stage>``, ``gdwm.scorer.<stage>``, what ``gdwm compare`` resamples) onto the trial's run."""
+    """The evaluation stages' metrics, per-sample tables (``<stage>/*.parquet``) and how to rescore them (tags
+    ``gdwm.samples.<stage>``, ``gdwm.scorer.<stage>``, ``gdwm.strata.<stage>``: what ``gdwm compare`` resamples)
+    onto the trial's run."""
     metrics = evaluation_metrics(pipe, results)
     if metrics:
         call(sink, "log_metrics", run_id, metrics)
@@ -258,9 +274,9 @@ def report_evaluation(sink, run_id: str, pipe: Pipeline, results: dict[str, Stag
         if pipe.stages[name].evaluation and r.path:
             for table in sorted(Path(r.path).glob("*.parquet")):
                 call(sink, "log_artifact", run_id, str(table), name)
-    samples = evaluation_samples(pipe, results)
-    tags = {f"gdwm.samples.{n}": f"{n}/{path.name}" for n, (path, _) in samples.items()}
-    tags |= {f"gdwm.scorer.{n}": scorer for n, (_, scorer) in samples.items()}
+    tags = {
+        k: v for n, s in evaluation_samples(pipe, results).items() for k, v in s.tags(n, f"{n}/{s.path.name}").items()
+    }
     if tags:
         call(sink, "set_tags", run_id, tags)
     return metrics

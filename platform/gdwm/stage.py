@@ -49,6 +49,9 @@ class StageDef:
     score: Callable[[Any], Mapping[str, float]] | None = None
     """``score(table: pyarrow.Table) -> metrics``: the stage's metrics of any subset of ``samples`` (rows may repeat;
     row order is ranking order). A module-level function, so compare and regress can import it by name."""
+    strata: str | None = None
+    """A column of ``samples`` (e.g. ``task``) whose groups a bootstrap resamples separately, each at its own size,
+    so a suite of per-group metrics stays defined on every resample."""
 
     def __post_init__(self) -> None:
         if self.resources not in RESOURCE_CLASSES:
@@ -87,12 +90,13 @@ def stage(
     seeded: bool = False,
     samples: str | None = None,
     score: Callable[[Any], Mapping[str, float]] | None = None,
+    strata: str | None = None,
 ) -> Callable[[Callable[[StageContext], Any]], StageDef]:
     """Declare a stage; the decorated name becomes its StageDef (point ``_target_`` at it)."""
 
     def wrap(fn: Callable[[StageContext], Any]) -> StageDef:
         sd = StageDef(name, str(version), fn, tuple(config), tuple(upstream), per_scene, resources, setup, evaluation,
-                      seeded, samples, score)  # fmt: skip
+                      seeded, samples, score, strata)  # fmt: skip
         _REGISTRY[(fn.__module__, fn.__name__)] = sd
         return sd
 

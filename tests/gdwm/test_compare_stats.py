@@ -218,3 +218,36 @@ def test_surviving_seeds_show_n_in_every_format_and_one_seed_takes_no_mark():
     )
     assert table.legend == legend
     assert md[-1] == legend and lines[-1] == f"# {legend}" and f"% Legend: {legend}" in tex
+
+
+def per_task(table: pa.Table) -> dict[str, float]:
+    """A suite of per-task accuracies and their mean: undefined on a resample that drops a task entirely."""
+    out = {}
+    for task in sorted(set(table.column("task").to_pylist())):
+        sel = table.filter(pc.equal(table.column("task"), task))
+        out[f"acc/{task}"] = 100.0 * pc.mean(sel.column("correct")).as_py()
+    if len(out) == 3:
+        out[M] = sum(out.values()) / 3
+    return out
+
+
+def test_strata_keep_every_task_in_every_resample_and_match_scipys_multi_sample_bootstrap():
+    # 40 samples of which only 3 are 'plan': an unstratified resample loses the task (and the suite's mean) often
+    tasks = ["rdp"] * 25 + ["vg2d"] * 12 + ["plan"] * 3
+    correct = (np.random.default_rng(4).random(40) < 0.5).astype(np.int64)
+    ids = [f"s{i:02d}" for i in range(40)]
+    table = pa.table({"sample_id": ids, "task": tasks, "correct": correct})
+    sset = SampleSet(ids, table, per_task, strata=tasks)
+    settings = Settings(n_resamples=200, method="percentile")
+    b = paired_bootstrap("qa", {0: [sset]}, [M], settings)
+    low, high = b.values[0, M]
+
+    def reference(*groups):  # scipy resamples each task separately; the suite's mean of the concatenation
+        idx = np.sort(np.concatenate(groups))
+        return per_task(table.take(idx))[M]
+
+    groups = tuple(np.flatnonzero(np.array(tasks) == t) for t in ("plan", "rdp", "vg2d"))  # strata sorted by name
+    ref = stats.bootstrap(groups, reference, n_resamples=200, vectorized=False, method="percentile",
+                          rng=np.random.default_rng(0)).confidence_interval  # fmt: skip
+    assert (low, high) == pytest.approx((ref.low, ref.high))
+    assert low < per_task(table)[M] < high

@@ -23,6 +23,7 @@ from gdwm.tracking import TrackingBackend
 
 SAMPLES_PREFIX = "gdwm.samples."
 SCORER_PREFIX = "gdwm.scorer."
+STRATA_PREFIX = "gdwm.strata."
 ID_COLUMN = "sample_id"
 PROGRESS_BAR = "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"
 
@@ -62,10 +63,17 @@ def _load(backend: TrackingBackend, trial: Trial, stage: str, path: str, dst: Pa
     fn = scorer(spec)
     with quiet_downloads():
         local = backend.client.download_artifacts(trial.run_id, path, str(dst / trial.run_id))
-    table = pq.read_table(local)  # read into memory: the download folder is temporary
-    if ID_COLUMN not in table.column_names:
-        raise ValueError(f"{path} has no column '{ID_COLUMN}' (columns: {', '.join(table.column_names)})")
-    return SampleSet(table.column(ID_COLUMN).to_pylist(), table, fn)
+    return sample_set(local, fn, trial.tags.get(STRATA_PREFIX + stage), path)
+
+
+def sample_set(local: str | Path, fn: Callable, strata: str | None, name: str) -> SampleSet:
+    """A downloaded per-sample table as the statistics take it (read into memory: the folder may be temporary)."""
+    table = pq.read_table(local)
+    for col in (ID_COLUMN, strata):
+        if col and col not in table.column_names:
+            raise ValueError(f"{name} has no column '{col}' (columns: {', '.join(table.column_names)})")
+    groups = table.column(strata).to_pylist() if strata else None
+    return SampleSet(table.column(ID_COLUMN).to_pylist(), table, fn, groups)
 
 
 def load_samples(backend: TrackingBackend, rows: list[Row], dst: Path) -> list[str]:

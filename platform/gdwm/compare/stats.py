@@ -40,6 +40,9 @@ class SampleSet:
     """The predictions: a ``pyarrow.Table`` (anything with ``take(indices)``)."""
     scorer: Callable[[Any], Mapping[str, float]]
     """Recomputes the stage's metrics (the logged names) from any subset of the table's rows, in the given order."""
+    strata: Sequence[Hashable] | None = None
+    """Group of each row (e.g. its task), resampled separately so each group keeps its size: a suite of per-task
+    metrics stays defined on every resample. None: one group."""
 
 
 @dataclass
@@ -168,6 +171,18 @@ def _interval(data, statistic, res, level: float, settings: Settings) -> tuple[n
     return low, high, bool(bad.any())
 
 
+def _strata(first: SampleSet, pos: np.ndarray) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
+    """Positions 0..n-1 of the common ids, one array per stratum of ``first`` (scipy resamples each separately, at
+    its own size), and the positions of one-sample strata, which have nothing to resample and are always kept."""
+    labels = [None] * len(pos) if first.strata is None else [first.strata[p] for p in pos]
+    groups: dict = {}
+    for k, g in enumerate(labels):
+        groups.setdefault(g, []).append(k)
+    ordered = [np.array(v, dtype=np.intp) for _, v in sorted(groups.items(), key=lambda kv: str(kv[0]))]
+    fixed = [g for g in ordered if len(g) < 2]
+    return tuple(g for g in ordered if len(g) >= 2), np.concatenate(fixed) if fixed else np.zeros(0, np.intp)
+
+
 def paired_bootstrap(
     stage: str,
     sets: Mapping[int, Sequence[SampleSet]],
@@ -179,7 +194,8 @@ def paired_bootstrap(
 
     The statistic is, for every metric the scorers return, each row's seed-mean then each pairwise difference;
     each (row, seed) table is scored once per resample, its rows taken in their original order (grounding mAP
-    ranks by row order). None when fewer than two ids are shared or no scorer returns one of ``metrics``."""
+    ranks by row order). With strata, each stratum is resampled at its own size (a stratified bootstrap). None when
+    fewer than two ids are shared, nothing can be resampled, or no scorer returns one of ``metrics``."""
     rows = list(sets)
     labels = labels or {i: str(i) for i in rows}
     common, positions = _align(stage, sets, labels)
@@ -204,13 +220,18 @@ def paired_bootstrap(
     pairs = list(combinations(range(len(rows)), 2))
     ia, ib = np.array([a for a, _ in pairs], dtype=np.intp), np.array([b for _, b in pairs], dtype=np.intp)
 
-    def statistic(idx: np.ndarray) -> np.ndarray:
-        idx = np.asarray(idx, dtype=np.intp)
-        scored = np.array([[out[m] for m in found] for out in (score(j, idx) for j in range(len(flat)))], dtype=float)
+    data, fixed = _strata(next(iter(sets.values()))[0], positions[0])
+    if not data:
+        return None
+
+    def statistic(*groups: np.ndarray) -> np.ndarray:
+        idx = np.concatenate([fixed, *(np.asarray(g, dtype=np.intp) for g in groups)])
+        # a metric a resample leaves undefined (no parsable answer left, say) is NaN there
+        outs = (score(j, idx) for j in range(len(flat)))
+        scored = np.array([[out.get(m, np.nan) for m in found] for out in outs], dtype=float)
         values = np.stack([scored[starts[r] : starts[r + 1]].mean(axis=0) for r in range(len(rows))])
         return np.concatenate([values.ravel(), (values[ia] - values[ib]).ravel()])
 
-    data = (np.arange(len(common)),)
     with warnings.catch_warnings():
         # a metric constant on every resample (0 everywhere) makes BCa NaN with a warning: the percentile fallback
         warnings.simplefilter("ignore", stats.DegenerateDataWarning)

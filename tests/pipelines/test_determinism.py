@@ -1,0 +1,75 @@
+"""A trial is bit-identical wherever it runs: twice from scratch in two workdirs, and again as one of three trials of
+a sweep running side by side (the real stages, tiny flavors, local Ray on 2 CPUs)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from gdwm.cache import Cache
+
+REPO = Path(__file__).resolve().parents[2]
+TINY = [
+    "targets=[evaluate_qa]",
+    "stage/reconstruct=tiny",
+    "stage/distill=tiny",
+    "stage/tokenizer=tiny",
+    "stage/lora=tiny",
+    "stage/evaluate_qa=tiny",
+    "data.num_scenes=2",
+    "data.width=64",
+    "data.height=36",
+]
+
+
+def _gdwm(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
+    env = {**os.environ, "GDWM_CONF_PATH": str(REPO / "tests" / "conf")}
+    r = subprocess.run([sys.executable, "-m", "gdwm", *args], capture_output=True, text=True, timeout=timeout, env=env)
+    assert r.returncode == 0, r.stderr[-4000:]
+    return r
+
+
+def _evaluation(work: Path) -> dict[str, tuple[bytes, dict]]:
+    """evaluate_qa's predictions (bytes) and metrics per cache key."""
+    cache = Cache(work / "cache")
+    out = {}
+    for m in cache.entries("evaluate_qa"):
+        d = Path(cache.materialize(m))
+        out[m.key] = ((d / "predictions.parquet").read_bytes(), json.loads((d / "metrics.json").read_text()))
+    return out
+
+
+@pytest.fixture(scope="module")
+def twice(tmp_path_factory) -> tuple[Path, dict, dict]:
+    root = tmp_path_factory.mktemp("det")
+    data = root / "data"
+    runs = []
+    for name in ("a", "b"):
+        _gdwm("run", f"workdir={root / name}", f"data.root={data}", *TINY)
+        runs.append(_evaluation(root / name))
+    return data, runs[0], runs[1]
+
+
+def test_two_runs_from_scratch_give_the_same_bytes(twice):
+    _, a, b = twice
+    assert list(a) == list(b)  # one trial, the same cache key in both workdirs
+    ((preds_a, metrics_a),), ((preds_b, metrics_b),) = a.values(), b.values()
+    assert preds_a == preds_b
+    assert metrics_a == metrics_b and metrics_a["count/answered"] == 24
+
+
+def test_the_same_trial_in_a_concurrent_sweep_gives_the_same_bytes(twice, tmp_path):
+    data, alone, _ = twice
+    r = _gdwm("sweep", "sweep=tiny_concurrent", f"workdir={tmp_path}", f"data.root={data}")
+    assert "sweep: 3 trials" in r.stdout
+    swept = _evaluation(tmp_path)
+    assert len(swept) == 3
+    (key,) = alone
+    assert swept[key] == alone[key]  # predictions bytes and metrics
+    others = [v[0] for k, v in swept.items() if k != key]
+    assert all(p != alone[key][0] for p in others)  # the other rows are other models
