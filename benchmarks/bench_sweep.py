@@ -9,11 +9,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from omegaconf import OmegaConf
-
 from benchmarks.common import Result
 from gdwm.config import load_config
-from gdwm.sweep import compose, expand, user_overrides
+from gdwm.sweep import plan_sweep
 
 TINY = [
     "stage/reconstruct=tiny",
@@ -41,15 +39,14 @@ def run(quick: bool = False) -> list[Result]:
         base = [*data, *TINY]
         t_sweep = _gdwm("sweep", "sweep=journal_ablation", f"workdir={tmp / 'sweep'}", *base)
         # the same trials, each as its own `gdwm run` in its own workdir (own cache, own store)
-        sweep = OmegaConf.to_object(load_config(["sweep=journal_ablation", *base]).sweep)
-        trials = expand(sweep)
-        compose(sweep, trials, user_overrides([*base, f"workdir={tmp / 'plan'}"]))
+        argv = ["sweep=journal_ablation", *base, f"workdir={tmp / 'plan'}"]
+        sweep, _, trials = plan_sweep(load_config(argv), argv)
         naive = sum(len(t.order) for t in trials)
         distinct = len({(n, t.keys[n]) for t in trials for n in t.order})
         t_runs = 0.0
-        for t in trials:
+        for i, t in enumerate(trials):
             targets = f"targets=[{','.join(sweep.targets)}]"
-            t_runs += _gdwm("run", targets, f"workdir={tmp / f'run{t.index}'}", *base, *sweep.overrides, *t.overrides)
+            t_runs += _gdwm("run", targets, f"workdir={tmp / f'run{i}'}", *base, *sweep.overrides, *t.row.overrides)
     ratio = t_sweep / t_runs
     detail = f"sweep {t_sweep:.0f} s vs 5 independent runs {t_runs:.0f} s"
     return [

@@ -162,6 +162,8 @@ class Layout:
     def open(self, sink, cfg: DictConfig, rows: list[Row], trials: list[Trial]) -> str:
         """The launch's run (found again or created), and every row's and trial's run under it."""
         parent = self._parent(sink, cfg)
+        if self.sweep is None:  # the run is the row
+            call(sink, "set_tags", parent, {"gdwm.seeds": ",".join(map(str, rows[0].seeds))})
         for row in rows:
             mine = [t for t in trials if t.row is row]
             row.run_id = parent if self.sweep is None else self._row_run(sink, parent, row, mine[0].cfg)

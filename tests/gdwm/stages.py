@@ -2,7 +2,7 @@
 
 GDWM_TEST_DIR      every execution appends "<stage> <scene>" to executions.log here
 GDWM_TEST_KILL     "stage:scene" (or "stage:step=N" for training) — SIGKILL the worker once (marker file)
-GDWM_TEST_FAIL     "stage:scene" — raise ValueError in that scene
+GDWM_TEST_FAIL     "stage:scene" — raise ValueError in that scene ("stage:seed=N": in that trial seed's execution)
 GDWM_TEST_BLOCK    "stage" or "stage:step=N" — wait until GDWM_TEST_DIR/release exists (a test kills the driver)
 """
 
@@ -44,8 +44,8 @@ def _inject(ctx: StageContext) -> None:
     target = f"{ctx.name}:{ctx.scene}"
     if os.environ.get("GDWM_TEST_KILL") == target and _once(target.replace(":", "-")):
         os.kill(os.getpid(), signal.SIGKILL)
-    if os.environ.get("GDWM_TEST_FAIL") == target:
-        raise ValueError(f"injected failure in {target}")
+    if os.environ.get("GDWM_TEST_FAIL") in (target, f"{ctx.name}:seed={ctx.seed}"):
+        raise ValueError(f"injected failure in {os.environ['GDWM_TEST_FAIL']}")
     if os.environ.get("GDWM_TEST_BLOCK") == ctx.name:
         _block(ctx.name)
 

@@ -152,7 +152,7 @@ def test_paired_bootstrap_tells_a_consistent_margin_from_noise():
     assert b.diffs[0, 1, M][0] < 0 < b.diffs[0, 1, M][1]  # A - N: 0 inside
     assert table.legend == (
         "Bold: best; underlined: second. Rows whose difference is not significant share a mark (paired bootstrap "
-        "over 96 held-out samples, 1 seed, 95% BCa CI of the difference, α = 0.05, 300 resamples). "
+        "over 96 held-out samples, 1 seed, 95% CI of the difference (BCa), α = 0.05, 300 resamples). "
         "Cells: one seed: value [95% bootstrap CI over held-out samples]."
     )
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import shutil
 import signal
+import statistics
 import subprocess
 import sys
 import time
@@ -145,6 +146,50 @@ def test_identical_rerun_is_all_cache_hits(first_run, tmp_path):
     assert toy.executions() == []
     assert {r.info.run_id for r in toy.runs()} == before
     assert "all 11 stage outputs cached and verified; nothing to run" in r.stdout
+
+
+def test_seeds_run_one_trial_each_and_share_seed_free_stages(first_run, tmp_path):
+    """seeds=[0,1,2] after a seed-0 run: seed 0 is all cache hits, seeds 1 and 2 run only the seeded stages and what
+    follows them; seed 2 fails, the run reports it (exit 1) and the row aggregates the two seeds that finished."""
+    from tests.gdwm.stages import seed_noise
+
+    toy = _copy(first_run, tmp_path)
+    r = toy.run("seeds=[0,1,2]", "targets=[evaluate_qa]", GDWM_TEST_FAIL="lora:seed=2")
+    assert r.returncode == 1 and "injected failure in lora:seed=2" in r.stderr
+    assert sorted(s for s, _ in toy.executions()) == ["evaluate_qa", "lora", "lora", "tokenizer", "tokenizer"]
+    (parent,) = [x for x in toy.runs("run") if x.data.tags.get("gdwm.seeds") == "0,1,2"]
+    trials = {x.data.tags["gdwm.seed"]: x for x in toy.runs("trial")}
+    assert {k: t.info.status for k, t in trials.items()} == {"0": "FINISHED", "1": "FINISHED", "2": "FAILED"}
+    assert {t.data.tags["mlflow.parentRunId"] for t in trials.values()} == {parent.info.run_id}
+    assert trials["2"].data.tags["gdwm.failed_stage"] == "lora"
+    acc = [12 * (4 + seed_noise(s)) for s in (0, 1)]  # rank 4, 3 steps, 4 dims
+    assert parent.data.metrics["acc"] == pytest.approx(sum(acc) / 2) and parent.data.metrics["n/acc"] == 2.0
+    assert parent.info.status == "FAILED"
+    # its table says how many seeds each cell has
+    args = ["compare", f"workdir={toy.work}", f"args.runs=[{parent.info.run_id}]", "args.formats=[markdown]",
+            f"args.out={tmp_path / 'report'}"]  # fmt: skip
+    c = subprocess.run(
+        [sys.executable, "-m", "gdwm", *args], env=toy.env(), capture_output=True, text=True, timeout=300
+    )
+    _ok(c)
+    md = (tmp_path / "report" / "nuinteract.md").read_text()
+    assert f"{sum(acc) / 2:.2f} ± {statistics.stdev(acc):.2f} (n=2)" in md and "(n=k): k of 3 seeds finished" in md
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["seeds=[]"], "gdwm run: seeds: no seeds given"),
+        (["seeds=[0,1.5]"], "seeds"),
+        (["seeds=[0,1]", "seed=3"], "gdwm run: override 'seed=3' sets the trial seed"),
+    ],
+)
+def test_bad_seeds_exit_2(tmp_path, args, message):
+    toy = Toy(tmp_path)
+    r = toy.run(*args)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert message in r.stderr
+    assert not (toy.work / "mlflow.db").exists()
 
 
 def test_lora_change_reruns_lora_and_descendants_only(first_run, tmp_path):

@@ -359,11 +359,11 @@ def legend(
             samples = " and ".join(f"{b.n_samples}" + (f" ({b.stage})" if len(boots) > 1 else "") for b in boots)
             method = settings.method
             if any(b.fell_back for b in boots):
-                method += f", percentile where {settings.method} was degenerate"
+                method += ", percentile where it was degenerate"
             seeds = _count([n for b in boots for n in b.seeds], "seed")
             tests.append(
                 f"paired bootstrap over {samples} held-out samples, {seeds}, "
-                f"{(1 - settings.alpha) * 100:g}% {method} CI of the difference, {alpha}, "
+                f"{(1 - settings.alpha) * 100:g}% CI of the difference ({method}), {alpha}, "
                 f"{settings.n_resamples} resamples"
             )
         if "welch" in used:
