@@ -7,35 +7,16 @@ tiny training flavors, a smoke run of the same comparison.
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
-from benchmarks.common import Result
+from benchmarks.common import TINY_FLAVORS, TINY_SCENES, Result
+from benchmarks.common import gdwm as _gdwm
 from gdwm.config import load_config
 from gdwm.sweep import plan_sweep
 
 SEEDS = (0, 1, 2)
-QUICK = [
-    "data.num_scenes=2",
-    "data.width=64",
-    "data.height=36",
-    "stage/reconstruct=tiny",
-    "stage/distill=tiny",
-    "stage/tokenizer=tiny",
-    "stage/lora=tiny",
-    "stage/evaluate_qa=tiny",
-]
-
-
-def _gdwm(*args: str) -> float:
-    t0 = time.perf_counter()
-    r = subprocess.run([sys.executable, "-m", "gdwm", *args], capture_output=True, text=True)
-    if r.returncode != 0:
-        raise RuntimeError(f"gdwm {' '.join(args)} failed:\n{r.stderr[-3000:]}")
-    return time.perf_counter() - t0
+QUICK = [*TINY_SCENES, *TINY_FLAVORS]
 
 
 def _executions(argv: list[str]) -> tuple[int, int]:

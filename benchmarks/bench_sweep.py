@@ -3,40 +3,21 @@ with no shared cache, side by side in one run on a small synthetic_mini with tin
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
-from benchmarks.common import Result
+from benchmarks.common import TINY_FLAVORS, TINY_SCENES, Result
+from benchmarks.common import gdwm as _gdwm
 from gdwm.config import load_config
 from gdwm.sweep import plan_sweep
-
-TINY = [
-    "stage/reconstruct=tiny",
-    "stage/distill=tiny",
-    "stage/tokenizer=tiny",
-    "stage/lora=tiny",
-    "stage/evaluate_qa=tiny",
-    "run.live=false",
-]
-
-
-def _gdwm(*args: str) -> float:
-    t0 = time.perf_counter()
-    r = subprocess.run([sys.executable, "-m", "gdwm", *args], capture_output=True, text=True)
-    if r.returncode != 0:
-        raise RuntimeError(f"gdwm {' '.join(args)} failed:\n{r.stderr[-3000:]}")
-    return time.perf_counter() - t0
 
 
 def run(quick: bool = False) -> list[Result]:
     with tempfile.TemporaryDirectory(prefix="gdwm-bench-sweep-") as tmp:
         tmp = Path(tmp)
-        data = [f"data.root={tmp / 'data'}", "data.num_scenes=2", "data.width=64", "data.height=36"]
+        data = [f"data.root={tmp / 'data'}", *TINY_SCENES]
         _gdwm("data", "synth", *data)  # one dataset: both sides read it
-        base = [*data, *TINY]
+        base = [*data, *TINY_FLAVORS]
         t_sweep = _gdwm("sweep", "sweep=journal_ablation", f"workdir={tmp / 'sweep'}", *base)
         # the same trials, each as its own `gdwm run` in its own workdir (own cache, own store)
         argv = ["sweep=journal_ablation", *base, f"workdir={tmp / 'plan'}"]

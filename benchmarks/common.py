@@ -3,9 +3,32 @@
 from __future__ import annotations
 
 import statistics
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+
+TINY_SCENES = ["data.num_scenes=2", "data.width=64", "data.height=36"]
+"""A small synthetic_mini: 2 scenes at 64x36."""
+TINY_FLAVORS = [
+    "stage/reconstruct=tiny",
+    "stage/distill=tiny",
+    "stage/tokenizer=tiny",
+    "stage/lora=tiny",
+    "stage/evaluate_qa=tiny",
+    "run.live=false",
+]
+"""The understanding branch's stages in their seconds-long flavors."""
+
+
+def gdwm(*args: str) -> float:
+    """Wall seconds of one ``gdwm`` command in its own process (raises with its stderr if it fails)."""
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "gdwm", *args], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"gdwm {' '.join(args)} failed:\n{r.stderr[-3000:]}")
+    return time.perf_counter() - t0
 
 
 @dataclass

@@ -9,6 +9,19 @@ import pytest
 from pipelines.data.synth.build import build
 from pipelines.data.synth.config import SynthConfig
 
+TINY_RUN = [
+    "targets=[evaluate_qa]",
+    "stage/reconstruct=tiny",
+    "stage/distill=tiny",
+    "stage/tokenizer=tiny",
+    "stage/lora=tiny",
+    "stage/evaluate_qa=tiny",
+    "data.num_scenes=2",
+    "data.width=64",
+    "data.height=36",
+]
+"""``gdwm run`` overrides of the understanding branch in seconds: tiny flavors on 2 small scenes."""
+
 
 @pytest.fixture(scope="session")
 def synth_small_cfg() -> SynthConfig:

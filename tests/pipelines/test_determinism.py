@@ -12,19 +12,9 @@ from pathlib import Path
 import pytest
 
 from gdwm.cache import Cache
+from tests.pipelines.conftest import TINY_RUN as TINY
 
 REPO = Path(__file__).resolve().parents[2]
-TINY = [
-    "targets=[evaluate_qa]",
-    "stage/reconstruct=tiny",
-    "stage/distill=tiny",
-    "stage/tokenizer=tiny",
-    "stage/lora=tiny",
-    "stage/evaluate_qa=tiny",
-    "data.num_scenes=2",
-    "data.width=64",
-    "data.height=36",
-]
 
 
 def _gdwm(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:

@@ -12,6 +12,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from gdwm.cache import Cache
+from tests.pipelines.conftest import TINY_RUN
 
 
 def test_gdwm_run_reconstruct_distill_tokenizer_lora_evaluate_qa(tmp_path):
@@ -21,15 +22,7 @@ def test_gdwm_run_reconstruct_distill_tokenizer_lora_evaluate_qa(tmp_path):
         "gdwm",
         "run",
         f"workdir={tmp_path}",
-        "targets=[evaluate_qa]",
-        "stage/reconstruct=tiny",
-        "stage/distill=tiny",
-        "stage/tokenizer=tiny",
-        "stage/lora=tiny",
-        "stage/evaluate_qa=tiny",
-        "data.num_scenes=2",
-        "data.width=64",
-        "data.height=36",
+        *TINY_RUN,
     ]
     r = subprocess.run(args, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-4000:]

@@ -1,0 +1,71 @@
+"""Every stage starts from the same state whatever ran before it in the worker (gdwm.determinism), and a seeded
+stage's seed is part of its config and key (gdwm.executor.stage_config)."""
+
+from __future__ import annotations
+
+import random
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+
+from gdwm.determinism import resolve, stage_start, worker_env
+from gdwm.executor import RunEnv, stage_config, stage_key
+from gdwm.stage import StageDef
+
+
+def _draws() -> tuple:
+    return random.random(), float(np.random.rand()), torch.rand(3).tolist()
+
+
+def test_stage_start_resets_generators_and_threads_whatever_ran_before():
+    threads = torch.get_num_threads()
+    try:
+        stage_start(7, 1, None)
+        first = _draws()
+        torch.set_num_threads(2)  # another task in the same worker: other threads, other draws
+        _draws()
+        torch.rand(100)
+        stage_start(7, 1, None)
+        assert _draws() == first
+        assert torch.get_num_threads() == 1 and torch.are_deterministic_algorithms_enabled()
+        stage_start(8, 1, None)
+        assert _draws() != first
+        stage_start(7, 2, False)  # switched off: seeds still apply, threads and kernels are left alone
+        assert _draws() == first and torch.get_num_threads() == 1 and not torch.are_deterministic_algorithms_enabled()
+    finally:
+        torch.use_deterministic_algorithms(False)
+        torch.set_num_threads(threads)
+
+
+def test_null_means_on_without_cuda_and_workers_get_the_cublas_workspace():
+    assert resolve(None) is (not torch.cuda.is_available())
+    assert resolve(True) is True and resolve(False) is False
+    assert worker_env(None) == {"CUBLAS_WORKSPACE_CONFIG": ":4096:8"} and worker_env(False) == {}
+
+
+def _noop(ctx):
+    return None
+
+
+def test_a_seeded_stage_carries_the_trial_seed_in_config_and_key():
+    cfg = OmegaConf.create({"seed": 3, "stage": {"x": {"lr": 0.1}}})
+    seeded = StageDef("lora", "1", _noop, config=("stage.x",), seeded=True)
+    free = StageDef("distill", "1", _noop, config=("stage.x",))
+    assert stage_config(seeded, cfg) == {"stage.x": {"lr": 0.1}, "seed": 3}
+    assert stage_config(free, cfg) == {"stage.x": {"lr": 0.1}}
+    env = RunEnv("/c", "/d", "fp", ("s",), "/k", None, None, None, {})
+    other = OmegaConf.merge(cfg, {"seed": 4})
+    assert stage_key(seeded, stage_config(seeded, cfg), {}, env) != stage_key(
+        seeded, stage_config(seeded, other), {}, env
+    )
+    assert stage_key(free, stage_config(free, cfg), {}, env) == stage_key(free, stage_config(free, other), {}, env)
+
+
+def test_model_seeds_follow_the_trial_seed_unless_pinned():
+    from gdwm.config import load_config
+
+    cfg = load_config(["seed=5"])
+    assert (cfg.model.llm.seed, cfg.model.selector.seed) == (5, 5)
+    pinned = load_config(["seed=5", "model.llm.seed=1"])
+    assert (pinned.model.llm.seed, pinned.model.selector.seed) == (1, 5)

@@ -1,0 +1,39 @@
+"""The shipped nightly suite (conf/benchmark/nightly.yaml: the demo experiment over seeds 0-2, tolerances of 3 std of
+the baseline's spread) on the real stages: it passes against other seeds of the same model and fires on a model that
+is clearly worse. About 25 minutes on 2 cores: `make test-all`."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+
+def _regress(work, *args: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "gdwm", "regress", f"workdir={work}", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=3600)
+
+
+@pytest.fixture(scope="module")
+def baselined(tmp_path_factory):
+    work = tmp_path_factory.mktemp("nightly")
+    r = _regress(work, "--set-baseline")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "recorded run" in r.stdout and "mean of seeds [0, 1, 2]" in r.stdout
+    return work
+
+
+def test_other_seeds_of_the_baseline_model_pass(baselined):
+    r = _regress(baselined, "seeds=[3,4,5]")
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "REGRESSION" not in r.stdout and "mean of seeds [3, 4, 5]" in r.stdout
+
+
+def test_a_clearly_worse_model_fires(baselined):
+    # LoRA for 20 steps instead of 120: the model has not learnt the description answers yet
+    r = _regress(baselined, "stage.lora.steps=20")
+    assert r.returncode == 1, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "regression: nuinteract/avg" in r.stderr and "(tolerance 3σ = " in r.stderr
