@@ -7,7 +7,7 @@ public code exists for these protocols, and our tokenizer is not PTB's, so every
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
 from typing import Any
@@ -115,13 +115,27 @@ def _rows(rows: Any) -> list[dict]:
     return rows
 
 
-def score_predictions(rows: Iterable[dict] | Any, mapping: SuiteMapping | None = None) -> SuiteResult:
-    """Every suite's metrics of prediction ``rows`` (dicts or a pyarrow Table), ranked for mAP in the given order."""
+AGGREGATES = {
+    "nuinteract/avg": NUINTERACT_TEN,
+    "nuinstruct/average_star": ("nuinstruct/acc", "nuinstruct/map", "nuinstruct/bleu", "nuinstruct/mae"),
+    "omnidrive/avg": ("omnidrive/bleu", "omnidrive/cider", "omnidrive/rouge_l"),
+}
+"""Metrics computed from other metrics, and what they need."""
+
+
+def score_predictions(
+    rows: Iterable[dict] | Any, mapping: SuiteMapping | None = None, wanted: Collection[str] | None = None
+) -> SuiteResult:
+    """Every suite's metrics of prediction ``rows`` (dicts or a pyarrow Table), ranked for mAP in the given order;
+    with ``wanted``, only the groups those metrics (and the aggregates among them) need."""
     m = mapping or SuiteMapping()
     rows = _rows(rows)
     out = SuiteResult()
+    need = None if wanted is None else set(wanted).union(*(AGGREGATES[a] for a in wanted if a in AGGREGATES))
 
     def run(group: str, score: Callable[[list[str], list[str]], Scored | dict | None], names: dict[str, str]) -> None:
+        if need is not None and need.isdisjoint(names.values()):
+            return
         patterns = getattr(m, group.replace("/", "_"))
         sel = [r for r in rows if any(fnmatchcase(r[c] or "", p) for p in patterns for c in ("task", "category"))]
         if not sel:
@@ -175,17 +189,18 @@ def score_predictions(rows: Iterable[dict] | Any, mapping: SuiteMapping | None =
             out.metrics[name] = value(*(out.metrics[p] for p in parts))
             out.protocol[name] = f"approximate: {PROTOCOL[name]}"
 
-    aggregate("nuinteract/avg", NUINTERACT_TEN, lambda *v: sum(v) / len(v))
+    aggregate("nuinteract/avg", AGGREGATES["nuinteract/avg"], lambda *v: sum(v) / len(v))
     aggregate(
         "nuinstruct/average_star",
-        ("nuinstruct/acc", "nuinstruct/map", "nuinstruct/bleu", "nuinstruct/mae"),
+        AGGREGATES["nuinstruct/average_star"],
         lambda acc, map_, bleu, mae: (acc + map_ + bleu - mae) / 4,
     )
-    aggregate("omnidrive/avg", ("omnidrive/bleu", "omnidrive/cider", "omnidrive/rouge_l"), lambda *v: sum(v) / len(v))
+    aggregate("omnidrive/avg", AGGREGATES["omnidrive/avg"], lambda *v: sum(v) / len(v))
     return out
 
 
-def score_table(table: Any) -> dict[str, float]:
+def score_table(table: Any, wanted: Collection[str] | None = None) -> dict[str, float]:
     """The metrics of a ``predictions.parquet`` table (or any subset of its rows, repeats allowed): what
-    ``evaluate_qa`` logs, recomputed on bootstrap resamples by ``gdwm compare`` and ``gdwm regress``."""
-    return score_predictions(table).metrics
+    ``evaluate_qa`` logs, recomputed on bootstrap resamples by ``gdwm compare`` and ``gdwm regress`` (only the
+    ``wanted`` ones and what they need)."""
+    return score_predictions(table, wanted=wanted).metrics

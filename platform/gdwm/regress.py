@@ -8,7 +8,8 @@ compared value is their mean), the metrics with their tolerances, and performanc
 whose figures become metrics ``perf/<bench>/<metric>``.
 
 A tolerance is a fixed amount (``tolerance: 1.0``, or a fraction with ``relative: true``), or the baseline's own
-noise: ``tolerance: {sigma: 3}`` allows 3 standard deviations of the baseline's spread over its seeds. With
+noise: ``tolerance: {sigma: 3}`` allows 3 standard deviations of the compared difference, the baseline's spread
+over its seeds scaled to a difference of two means (``s * sqrt(1/n_baseline + 1/n_now)``). With
 ``test: bootstrap`` a worsening is a regression only if a paired bootstrap over the held-out samples (both runs'
 per-sample predictions, combined over seeds) finds it significant, beyond the tolerance.
 """
@@ -55,8 +56,9 @@ class MetricCheck:
     direction: Direction = Direction.higher
     """Which way is better."""
     tolerance: Any = 0.0
-    """Allowed worsening before it is a regression: an amount (``1.0``), or ``{sigma: K}``, K standard deviations of
-    the baseline's spread over its seeds (the benchmark and its baseline need >= 2 seeds)."""
+    """Allowed worsening before it is a regression: an amount (``1.0``), or ``{sigma: K}``: K standard deviations of
+    the difference of the two seed means, from the baseline's spread ``s`` over its seeds,
+    ``K * s * sqrt(1/n_baseline + 1/n_now)`` (the benchmark and its baseline need >= 2 seeds)."""
     relative: bool = False
     """A numeric ``tolerance`` is a fraction of the baseline value instead of an absolute amount."""
     test: CheckTest = CheckTest.none
@@ -130,16 +132,21 @@ def check(
 ) -> list[Row]:
     """One row per watched metric; a metric missing now is a regression, one new to the suite is not.
 
-    ``baseline`` and ``now`` hold means, with ``std/<metric>`` where there were >= 2 seeds (what ``{sigma: K}``
-    scales); ``paired`` gives the bootstrap interval ``test: bootstrap`` needs."""
+    ``baseline`` and ``now`` hold means, with ``std/<metric>`` and ``n/<metric>`` over their seeds (what
+    ``{sigma: K}`` scales); ``paired`` gives the bootstrap interval ``test: bootstrap`` needs."""
     rows = []
     for c in checks:
         b, n = (baseline or {}).get(c.name), now.get(c.name)
         arrow = " ↑" if c.direction == Direction.higher else " ↓"
         if c.sigma is not None:
             spread = (baseline or {}).get(f"std/{c.name}")
+            if spread is not None:  # the std of a difference of two means, estimated from the baseline's seeds
+                n_b, n_n = (baseline or {}).get(f"n/{c.name}", 1.0), now.get(f"n/{c.name}", 1.0)
+                spread *= math.sqrt(1 / n_b + 1 / n_n)
             tol = c.sigma * spread if spread is not None else math.nan
-            shown = f"{c.sigma:g}σ = {tol:.3g}" if spread is not None else f"{c.sigma:g}σ (no spread)"
+            shown = f"{c.sigma:g}σ" + (
+                f" = {tol:.3g}" if spread is not None else " (no spread)" if b is not None else ""
+            )
         else:
             tol = c.tolerance * abs(b) if (c.relative and b is not None) else float(c.tolerance)
             shown = f"{c.tolerance:.0%}" if c.relative else f"{c.tolerance:g}"

@@ -46,9 +46,11 @@ class StageDef:
     samples: str | None = None
     """Evaluation stages: a Parquet file of its output with one row per held-out sample (a ``sample_id`` column),
     what ``score`` recomputes the metrics from; ``gdwm compare`` resamples it for intervals and significance."""
-    score: Callable[[Any], Mapping[str, float]] | None = None
-    """``score(table: pyarrow.Table) -> metrics``: the stage's metrics of any subset of ``samples`` (rows may repeat;
-    row order is ranking order). A module-level function, so compare and regress can import it by name."""
+    score: Callable[[Any, Any], Mapping[str, float]] | None = None
+    """``score(table: pyarrow.Table, wanted: set[str] | None) -> metrics``: the stage's metrics of any subset of
+    ``samples`` (rows may repeat; row order is ranking order), computing only ``wanted`` where it can (None: all;
+    a bootstrap scores thousands of resamples). A module-level function, so compare and regress import it by
+    name."""
     strata: str | None = None
     """A column of ``samples`` (e.g. ``task``) whose groups a bootstrap resamples separately, each at its own size,
     so a suite of per-group metrics stays defined on every resample."""
@@ -89,7 +91,7 @@ def stage(
     evaluation: bool = False,
     seeded: bool = False,
     samples: str | None = None,
-    score: Callable[[Any], Mapping[str, float]] | None = None,
+    score: Callable[[Any, Any], Mapping[str, float]] | None = None,
     strata: str | None = None,
 ) -> Callable[[Callable[[StageContext], Any]], StageDef]:
     """Declare a stage; the decorated name becomes its StageDef (point ``_target_`` at it)."""

@@ -58,7 +58,7 @@ CORRECT = (np.random.default_rng(0).random(N_SAMPLES) < 0.6).astype(np.int64)
 """The plain run's per-sample 0/1 answers."""
 
 
-def accuracy(table: pa.Table) -> dict[str, float]:
+def accuracy(table: pa.Table, wanted=None) -> dict[str, float]:
     """The scorer the plain run's tag names: NuInteract Avg. = 100 x the mean of the 0/1 ``correct`` column."""
     return {"nuinteract/avg": 100.0 * pc.mean(table.column("correct")).as_py()}
 

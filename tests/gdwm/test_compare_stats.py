@@ -24,7 +24,7 @@ FAST = Settings(n_resamples=300)
 WELCH = "Welch's t-test over seeds, α = 0.05"
 
 
-def accuracy(table: pa.Table) -> dict[str, float]:
+def accuracy(table: pa.Table, wanted=None) -> dict[str, float]:
     """100 x the mean of the 0/1 ``correct`` column (a scorer as an evaluation stage would name it)."""
     return {M: 100.0 * pc.mean(table.column("correct")).as_py()}
 
@@ -166,7 +166,7 @@ def test_rows_are_aligned_on_the_sample_ids_they_share():
 
 
 def test_degenerate_bca_falls_back_to_percentile_and_rows_keep_their_order():
-    def ordered(table: pa.Table) -> dict[str, float]:  # 1 when the rows arrive in their original order
+    def ordered(table: pa.Table, wanted=None) -> dict[str, float]:  # 1 when the rows arrive in their original order
         pos = np.asarray(table.column("pos"))
         return {"ordered": float(np.all(np.diff(pos) >= 0))}
 
@@ -178,7 +178,7 @@ def test_degenerate_bca_falls_back_to_percentile_and_rows_keep_their_order():
 
 
 def test_errors_name_the_row_trial_and_stage():
-    def broken(table: pa.Table) -> dict[str, float]:
+    def broken(table: pa.Table, wanted=None) -> dict[str, float]:
         return {M: 1 / 0}
 
     ok, bad = samples(BASE), SampleSet([f"s{i:03d}" for i in range(96)], samples(BASE).table, broken)
@@ -220,7 +220,7 @@ def test_surviving_seeds_show_n_in_every_format_and_one_seed_takes_no_mark():
     assert md[-1] == legend and lines[-1] == f"# {legend}" and f"% Legend: {legend}" in tex
 
 
-def per_task(table: pa.Table) -> dict[str, float]:
+def per_task(table: pa.Table, wanted=None) -> dict[str, float]:
     """A suite of per-task accuracies and their mean: undefined on a resample that drops a task entirely."""
     out = {}
     for task in sorted(set(table.column("task").to_pylist())):
@@ -251,3 +251,27 @@ def test_strata_keep_every_task_in_every_resample_and_match_scipys_multi_sample_
                           rng=np.random.default_rng(0)).confidence_interval  # fmt: skip
     assert (low, high) == pytest.approx((ref.low, ref.high))
     assert low < per_task(table)[M] < high
+
+
+def _rate(k: int, seed: int) -> np.ndarray:
+    """96 answers of which exactly ``k`` are right, in a seeded order."""
+    return np.random.default_rng(seed).permutation(np.array([1] * k + [0] * (96 - k), dtype=np.int64))
+
+
+def _seeded(label: str, rights: list[int], offset: int) -> Row:
+    sets = [samples(_rate(k, offset + s)) for s, k in enumerate(rights)]
+    return row(label, [100.0 * k / 96 for k in rights], planned=len(rights), sets=sets)
+
+
+def test_with_seeds_a_difference_must_survive_both_the_samples_and_the_seeds():
+    # 15 points apart on 96 samples x 3 seeds (the bootstrap over samples alone calls that significant), but the
+    # seeds scatter by 20 points: Welch's test over the seeds does not, so both rows keep the bold
+    noisy = [_seeded("A", [67, 29, 58], 0), _seeded("B", [48, 19, 43], 10)]
+    sets = {i: [t.samples["qa"] for t in r.trials] for i, r in enumerate(noisy)}
+    assert paired_bootstrap("qa", sets, [M], FAST).diffs[0, 1, M][0] > 0  # the samples alone: A is better
+    table = build_table(noisy, LAYOUT, FAST)
+    assert marks(table) == {"A": BEST, "B": BEST}
+    assert "Welch's t-test over the seeds, α = 0.05: both must reject" in table.legend
+    # the same gap with seeds that agree: both tests reject
+    steady = [_seeded("A", [67, 66, 68], 0), _seeded("B", [48, 47, 49], 10)]
+    assert marks(build_table(steady, LAYOUT, FAST)) == {"A": BEST, "B": SECOND}

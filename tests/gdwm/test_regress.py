@@ -94,14 +94,15 @@ def test_seeded_baseline_records_mean_spread_and_samples(seeded):
 
 
 def test_other_seeds_of_the_same_model_do_not_fire(seeded):
-    # seeds 3-5 of the same model: plan_acc moves by about 2.2 std of the baseline's spread, within 3 sigma
+    # seeds 3-5 of the same model: the mean of plan_acc drops by 2.7 std of a difference of two 3-seed means
     r = _regress(seeded, "benchmark=toy_seeds", "seeds=[3,4,5]")
     _ok(r)
     base, now = _acc(4, (0, 1, 2)), _acc(4, (3, 4, 5))
-    shift = (statistics.fmean(base) - statistics.fmean(now)) / statistics.stdev(base)
-    assert 1.5 < shift < 3  # a drop a fixed tolerance of 1.0 would have called a regression
+    sigma = statistics.stdev(base) * (1 / 3 + 1 / 3) ** 0.5
+    shift = (statistics.fmean(base) - statistics.fmean(now)) / sigma
+    assert 2.5 < shift < 3  # a drop a fixed tolerance of 1.0 would have called a regression
     assert "REGRESSION" not in r.stdout and "mean of seeds [3, 4, 5]" in r.stdout
-    assert f"3σ = {3 * statistics.stdev(base):.3g}" in r.stdout
+    assert f"3σ = {3 * sigma:.3g}" in r.stdout
 
 
 def test_a_planted_regression_fires(seeded):
@@ -120,11 +121,12 @@ def test_check_with_sigma_and_bootstrap():
         MetricCheck("c", Direction.lower, 0.0, test=CheckTest.bootstrap),
         MetricCheck("d", Direction.higher, {"sigma": 2}),
     ]
-    base = {"a": 10.0, "std/a": 1.0, "b": 5.0, "c": 1.0, "d": 3.0}
-    now = {"a": 7.5, "b": 4.0, "c": 1.5, "d": 3.0}
+    base = {"a": 10.0, "std/a": 1.0, "n/a": 2.0, "b": 5.0, "c": 1.0, "d": 3.0}
+    now = {"a": 7.5, "n/a": 2.0, "b": 4.0, "c": 1.5, "d": 3.0}
     cis = {"b": (-2.0, 0.5), "c": (0.2, 0.8)}  # b: not significant; c: MAE significantly up
     rows = {r.metric: r for r in check(checks, base, now, cis.get)}
-    assert rows["a"].verdict == "REGRESSION" and rows["a"].tolerance == "2σ = 2 ↑"  # 2.5 worse > 2 x 1.0
+    # sigma of a difference of two 2-seed means: 1.0 x sqrt(1/2 + 1/2); 2.5 worse > 2 x 1.0
+    assert rows["a"].verdict == "REGRESSION" and rows["a"].tolerance == "2σ = 2 ↑"
     assert rows["b"].verdict == "ok (not significant)"
     assert rows["c"].verdict == "REGRESSION"
     assert rows["d"].verdict == "no spread"  # the baseline had one seed: sigma is undefined, and that fails

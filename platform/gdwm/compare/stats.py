@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Callable, Hashable, Mapping, Sequence
+from collections.abc import Callable, Collection, Hashable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from itertools import combinations
 from typing import Any
@@ -38,8 +38,9 @@ class SampleSet:
     """``sample_id`` of each table row, in table order (unique)."""
     table: Any
     """The predictions: a ``pyarrow.Table`` (anything with ``take(indices)``)."""
-    scorer: Callable[[Any], Mapping[str, float]]
-    """Recomputes the stage's metrics (the logged names) from any subset of the table's rows, in the given order."""
+    scorer: Callable[[Any, Collection[str] | None], Mapping[str, float]]
+    """``scorer(table, wanted)``: the stage's metrics (the logged names) of any subset of the table's rows, in the
+    given order; it may compute only the ``wanted`` ones (None: all)."""
     strata: Sequence[Hashable] | None = None
     """Group of each row (e.g. its task), resampled separately so each group keeps its size: a suite of per-task
     metrics stays defined on every resample. None: one group."""
@@ -202,12 +203,13 @@ def paired_bootstrap(
     if len(common) < 2:
         return None
     flat = list(zip((s for i in rows for s in sets[i]), positions, strict=True))
+    wanted = frozenset(metrics)  # a scorer may skip the rest: every resample scores every table once
     names = [f"row {labels[i]}, trial {k}" for i in rows for k in range(len(sets[i]))]
 
     def score(j: int, idx: np.ndarray) -> Mapping[str, float]:
         s, pos = flat[j]
         try:
-            return s.scorer(s.table.take(np.sort(pos[idx])))
+            return s.scorer(s.table.take(np.sort(pos[idx])), wanted)
         except Exception as e:  # the scorer is pipeline code: say whose predictions it failed on
             raise ValueError(f"{names[j]}, stage {stage}: its scorer failed on {len(idx)} samples: {e!r}") from e
 
@@ -316,13 +318,24 @@ def analyse(
         d = diffs.get((a, b, metric)) or (
             (-diffs[b, a, metric][1], -diffs[b, a, metric][0]) if (b, a, metric) in diffs else None
         )
-        if d is not None and not math.isnan(d[0]) and not math.isnan(d[1]):
-            used.add("bootstrap")
-            return d[0] > 0 if direction is Direction.higher else d[1] < 0
-        if cells[a, metric].n >= 2 and cells[b, metric].n >= 2:
-            used.add("welch")
+        seeds = cells[a, metric].n >= 2 and cells[b, metric].n >= 2
+
+        def welch() -> bool:
             ahead = (cells[a, metric].mean > cells[b, metric].mean) == (direction is Direction.higher)
             return ahead and welch_p(values[a, metric], values[b, metric]) < settings.alpha
+
+        if d is not None and not math.isnan(d[0]) and not math.isnan(d[1]):
+            sig = d[0] > 0 if direction is Direction.higher else d[1] < 0
+            if not seeds:
+                used.add("bootstrap")
+                return sig
+            # samples and seeds are two sources of noise: the difference counts only if it survives both (an
+            # intersection-union test, still at level alpha)
+            used.add("bootstrap+welch")
+            return sig and welch()
+        if seeds:
+            used.add("welch")
+            return welch()
         used.add("untested")
         return False
 
@@ -355,7 +368,7 @@ def legend(
     out = []
     if marked:
         tests = []
-        if "bootstrap" in used:
+        if used & {"bootstrap", "bootstrap+welch"}:
             samples = " and ".join(f"{b.n_samples}" + (f" ({b.stage})" if len(boots) > 1 else "") for b in boots)
             method = settings.method
             if any(b.fell_back for b in boots):
@@ -366,6 +379,8 @@ def legend(
                 f"{(1 - settings.alpha) * 100:g}% CI of the difference ({method}), {alpha}, "
                 f"{settings.n_resamples} resamples"
             )
+        if "bootstrap+welch" in used:
+            tests.append(f"and, between rows of >= 2 seeds, Welch's t-test over the seeds, {alpha}: both must reject")
         if "welch" in used:
             tests.append(f"{'else ' if tests else ''}Welch's t-test over seeds, {alpha}")
         if "untested" in used:

@@ -114,3 +114,22 @@ def test_mapping_selects_release_categories():
 def test_missing_column_names_the_row():
     with pytest.raises(ValueError, match=r"row 0 \(x\) lacks \['prediction'\]"):
         score_predictions([{"sample_id": "x", "task": "rdp", "category": "c", "answer": "a"}])
+
+
+def test_wanted_metrics_are_the_same_numbers_computed_alone():
+    from pipelines.evaluate.suites import score_table
+
+    rows = [
+        {"task": t, "category": c, "answer": a, "prediction": p}
+        for t, c, a, p in [
+            ("rdp", "region_description", "a red car is parked on the left", "a red car parked left"),
+            ("rdp", "region_description", "two pedestrians cross ahead", "one pedestrian ahead"),
+            ("plan", "planning_speed", "Keep speed. The road is clear.", "Keep speed. Clear."),
+            ("plan", "planning_speed", "Stop. A pedestrian crosses.", "Keep speed."),
+        ]
+    ]
+    full = score_table(rows)
+    some = score_table(rows, {"nuinteract/rdp_cider", "nuinteract/plan_acc"})
+    assert some == {k: full[k] for k in ("nuinteract/rdp_bleu", "nuinteract/rdp_rouge_l", "nuinteract/rdp_cider",
+                                          "nuinteract/plan_acc")}  # fmt: skip
+    assert "omnidrive/bleu" in full and "omnidrive/bleu" not in some
