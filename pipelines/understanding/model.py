@@ -330,7 +330,8 @@ class WorldModel(nn.Module):
             for c in self.peft.peft_config.values():
                 c.base_model_name_or_path = LLM_DIR
             try:
-                self.peft.save_pretrained(str(out / LORA_DIR))
+                # LoRA never targets the embeddings here; "auto" would look llm/ up on the Hub to find out
+                self.peft.save_pretrained(str(out / LORA_DIR), save_embedding_layers=False)
             finally:
                 config._name_or_path = before[0]
                 for n, c in self.peft.peft_config.items():

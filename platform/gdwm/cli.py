@@ -211,7 +211,10 @@ COMMANDS: dict[str, dict[str, Command]] = {
     },
     "run": {
         "": Command(
-            _run, "run the pipeline DAG (targets=[...], pipeline=..., --dry-run prints the plan)", flags=("--dry-run",)
+            _run,
+            "run the pipeline DAG (targets=[...], pipeline=..., seeds=[0,1,2] for a trial per seed, --dry-run prints "
+            "the plan)",
+            flags=("--dry-run",),
         ),
     },
     "status": {
@@ -220,8 +223,8 @@ COMMANDS: dict[str, dict[str, Command]] = {
     "sweep": {
         "": Command(
             _sweep,
-            "run an ablation table: sweep=NAME (conf/sweep/), overrides for every trial; shared stages run once; "
-            "--dry-run prints trials x stages (cached / shared / to run)",
+            "run an ablation table: sweep=NAME (conf/sweep/), overrides for every trial, seeds=[0,1,2] for a trial "
+            "per seed; shared stages run once; --dry-run prints trials x stages (cached / shared / to run)",
             flags=("--dry-run",),
         ),
     },
@@ -239,7 +242,8 @@ COMMANDS: dict[str, dict[str, Command]] = {
             _compare,
             'comparison table + HTML report of runs: args.sweep=NAME | args.runs=[ID,...] | args.filter="..." '
             "(default: all), compare=LAYOUT (a conf/compare/ option, default nuinteract), args.baseline=ROW, "
-            "args.out=DIR, args.formats=[...]",
+            "args.out=DIR, args.formats=[...]; cells carry mean ± std over seeds or a bootstrap CI, marks need a "
+            "significant difference: args.alpha=0.05, args.confidence=0.95, args.resamples=1000",
             defaults=["args=compare", "compare=nuinteract"],
         ),
     },
