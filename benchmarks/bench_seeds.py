@@ -1,5 +1,6 @@
 """A 3-seed ``journal_ablation`` sweep (seed-free reconstruction and distillation shared by the seeds, one cache)
 vs the same table as three 1-seed sweeps (``seed=0``, ``1``, ``2``) with no shared cache, side by side in one run.
+Each side is whole commands, its tables and reports included.
 
 Default: the demo's settings (``experiment=demo``: synthetic_mini, 4 scenes). ``--quick``: 2 small scenes and the
 tiny training flavors, a smoke run of the same comparison.
@@ -32,8 +33,8 @@ def run(quick: bool = False) -> list[Result]:
         base = ["sweep=journal_ablation", *data, *(QUICK if quick else ["experiment=demo"])]
         _gdwm("data", "synth", *base[1:])  # one dataset: every side reads it
         seeds = f"seeds=[{','.join(map(str, SEEDS))}]"
-        t_seeds = _gdwm("sweep", *base, seeds, f"workdir={tmp / 'seeds'}")
-        t_apart = [_gdwm("sweep", *base, f"seed={s}", f"workdir={tmp / f'seed{s}'}") for s in SEEDS]
+        t_seeds = _gdwm("sweep", *base, seeds, f"workdir={tmp / 'seeds'}")[0]
+        t_apart = [_gdwm("sweep", *base, f"seed={s}", f"workdir={tmp / f'seed{s}'}")[0] for s in SEEDS]
         together, _ = _executions([*base, seeds, f"workdir={tmp / 'seeds'}"])
         apart = sum(_executions([*base, f"seed={s}", f"workdir={tmp / 'plan'}"])[0] for s in SEEDS)
     ratio = t_seeds / sum(t_apart)

@@ -22,13 +22,13 @@ TINY_FLAVORS = [
 """The understanding branch's stages in their seconds-long flavors."""
 
 
-def gdwm(*args: str) -> float:
-    """Wall seconds of one ``gdwm`` command in its own process (raises with its stderr if it fails)."""
+def gdwm(*args: str) -> tuple[float, str]:
+    """Wall seconds and stdout of one ``gdwm`` command in its own process (raises with its stderr if it fails)."""
     t0 = time.perf_counter()
     r = subprocess.run([sys.executable, "-m", "gdwm", *args], capture_output=True, text=True)
     if r.returncode != 0:
         raise RuntimeError(f"gdwm {' '.join(args)} failed:\n{r.stderr[-3000:]}")
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, r.stdout
 
 
 @dataclass

@@ -162,8 +162,10 @@ class Layout:
     def open(self, sink, cfg: DictConfig, rows: list[Row], trials: list[Trial]) -> str:
         """The launch's run (found again or created), and every row's and trial's run under it."""
         parent = self._parent(sink, cfg)
-        if self.sweep is None:  # the run is the row
-            call(sink, "set_tags", parent, {"gdwm.seeds": ",".join(map(str, rows[0].seeds))})
+        if self.sweep is None:  # the run is the row (and, with one seed, the trial)
+            seeds = rows[0].seeds
+            call(sink, "set_tags", parent, {"gdwm.seeds": ",".join(map(str, seeds))} | (
+                {"gdwm.seed": str(seeds[0])} if len(seeds) == 1 else {}))  # fmt: skip
         for row in rows:
             mine = [t for t in trials if t.row is row]
             row.run_id = parent if self.sweep is None else self._row_run(sink, parent, row, mine[0].cfg)
@@ -438,7 +440,7 @@ def _finish_trial(sink, layout: Layout, t: Trial, outcomes: dict[str, Outcome]) 
             res.failed[n] = r
         else:
             res.blocked.append(n)
-    own_run = t.run_id != t.row.run_id or layout.sweep is not None  # else the launch's run: the guard ends it
+    own_run = t.run_id != t.row.run_id  # else it is the launch's run, which its guard ends
     if res.failed:
         stage, msg = next(iter(res.failed.items()))
         call(sink, "set_tags", t.run_id, {"gdwm.failed_stage": stage, "gdwm.error": msg})
@@ -448,9 +450,8 @@ def _finish_trial(sink, layout: Layout, t: Trial, outcomes: dict[str, Outcome]) 
         if layout.sweep is not None:
             console.print(f"[red]trial '{t.name}' failed at {stage}[/red]")
         return res
-    call(sink, "set_tags", t.run_id, {f"gdwm.stage_run.{n}": r.run_id for n, r in res.results.items() if r.run_id})
-    call(sink, "set_tags", t.run_id, {f"gdwm.stage_key.{n}": r.key for n, r in res.results.items()})
-    call(sink, "set_tags", t.run_id, {"gdwm.seed": str(t.seed)})
+    links = {f"gdwm.stage_run.{n}": r.run_id for n, r in res.results.items() if r.run_id}
+    call(sink, "set_tags", t.run_id, links | {f"gdwm.stage_key.{n}": r.key for n, r in res.results.items()})
     res.metrics = report_evaluation(sink, t.run_id, t.pipe, res.results)
     if layout.sweep is not None:
         # the zoo versions this trial's stages registered carry its sweep, trial and key metrics
