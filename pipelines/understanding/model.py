@@ -324,18 +324,18 @@ class WorldModel(nn.Module):
         if self.peft is not None:
             # the base model is llm/ beside it (or llm.path), never the absolute path it was loaded from: the same
             # model saved from another workdir is the same bytes
-            config = self.peft.get_base_model().config
-            before = config._name_or_path, {n: c.base_model_name_or_path for n, c in self.peft.peft_config.items()}
-            config._name_or_path = LLM_DIR
-            for c in self.peft.peft_config.values():
-                c.base_model_name_or_path = LLM_DIR
+            base = self.peft.get_base_model()
+            named = [(base.config, "_name_or_path"), (base, "name_or_path")]  # the model card's two sources
+            named += [(c, "base_model_name_or_path") for c in self.peft.peft_config.values()]
+            before = [getattr(o, a) for o, a in named]
+            for o, a in named:
+                setattr(o, a, LLM_DIR)
             try:
                 # LoRA never targets the embeddings here; "auto" would look llm/ up on the Hub to find out
                 self.peft.save_pretrained(str(out / LORA_DIR), save_embedding_layers=False)
             finally:
-                config._name_or_path = before[0]
-                for n, c in self.peft.peft_config.items():
-                    c.base_model_name_or_path = before[1][n]
+                for (o, a), value in zip(named, before, strict=True):
+                    setattr(o, a, value)
 
 
 def load_decoders(scene_dirs: dict[str, Path]) -> dict[str, tuple[FeatureAEConfig, nn.Module]]:

@@ -34,27 +34,36 @@ def _evaluation(work: Path) -> dict[str, tuple[bytes, dict]]:
     return out
 
 
+def _files(work: Path) -> dict[tuple[str, str | None, str], dict[str, str]]:
+    """Every cache entry's files and their sha256, by (stage, scene, key)."""
+    cache = Cache(work / "cache")
+    stages = ("reconstruct", "distill", "tokenizer", "lora", "evaluate_qa")
+    return {(m.stage, m.scene, m.key): {f.path: f.sha256 for f in m.files} for s in stages for m in cache.entries(s)}
+
+
 @pytest.fixture(scope="module")
-def twice(tmp_path_factory) -> tuple[Path, dict, dict]:
+def twice(tmp_path_factory) -> tuple[Path, dict, dict, dict, dict]:
     root = tmp_path_factory.mktemp("det")
     data = root / "data"
     runs = []
     for name in ("a", "b"):
         _gdwm("run", f"workdir={root / name}", f"data.root={data}", *TINY)
-        runs.append(_evaluation(root / name))
-    return data, runs[0], runs[1]
+        runs.append((_evaluation(root / name), _files(root / name)))
+    return data, runs[0][0], runs[1][0], runs[0][1], runs[1][1]
 
 
 def test_two_runs_from_scratch_give_the_same_bytes(twice):
-    _, a, b = twice
+    _, a, b, files_a, files_b = twice
     assert list(a) == list(b)  # one trial, the same cache key in both workdirs
     ((preds_a, metrics_a),), ((preds_b, metrics_b),) = a.values(), b.values()
     assert preds_a == preds_b
     assert metrics_a == metrics_b and metrics_a["count/answered"] == 24
+    # and so is every stage's every file on the way: the trained models, the LoRA adapter and its card included
+    assert len(files_a) == 7 and files_a == files_b
 
 
 def test_the_same_trial_in_a_concurrent_sweep_gives_the_same_bytes(twice, tmp_path):
-    data, alone, _ = twice
+    data, alone = twice[:2]
     r = _gdwm("sweep", "sweep=tiny_concurrent", f"workdir={tmp_path}", f"data.root={data}")
     assert "sweep: 3 trials" in r.stdout
     swept = _evaluation(tmp_path)
