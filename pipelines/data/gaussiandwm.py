@@ -34,7 +34,14 @@ import numpy as np
 from pipelines.data.config import DatasetConfig
 from pipelines.data.gaussiandwm_poses import read_pose_file
 from pipelines.data.gaussiandwm_qa import DEFAULT_TASK_MAP, ReleaseRecord, map_task, read_qa_file
-from pipelines.data.layout import DataError, DatasetWriter, flat_pose, gaussians_relpath, transform_gaussians
+from pipelines.data.layout import (
+    DataError,
+    DatasetWriter,
+    content_params,
+    flat_pose,
+    gaussians_relpath,
+    transform_gaussians,
+)
 from pipelines.data.scene_splits import split_scenes
 
 log = logging.getLogger(__name__)
@@ -91,7 +98,8 @@ def build(cfg: ReleaseConfig, root: Path, source: str | None, overwrite: bool = 
     # Rows first: a bad record fails before any Gaussian is read.
     qa_rows = _qa_rows(records, frames, dense, split_scenes(scene_keys, cfg.val_fraction), cfg.task_map)
     colors: Counter = Counter()
-    with DatasetWriter(root, cfg.name, source=str(src), overwrite=overwrite) as w:
+    params = content_params(cfg, ReleaseConfig)  # the import options; the release itself is source=
+    with DatasetWriter(root, cfg.name, source=str(src), overwrite=overwrite, params=params) as w:
         for key in scene_keys:
             _write_scene(w, src, cfg, key, {dense[key][f]: frames[key][f] for f in dense[key]}, colors)
         w.extend("qa", qa_rows)

@@ -1,8 +1,8 @@
-"""The NuScenes-GSQA on-disk layout (DESIGN §8) and its atomic writer.
+"""The NuScenes-GSQA on-disk layout and its atomic writer.
 
 A dataset root looks like::
 
-    dataset.json                 name, layout version, scene ids, cameras, counts, fingerprint (written last)
+    dataset.json                 name, layout version, scene ids, cameras, counts, fingerprint, files, params (last)
     scenes.parquet               one row per scene
     frames.parquet               one row per (scene, frame)
     cameras.parquet              intrinsics + sensor->ego extrinsics per (scene, camera)
@@ -19,6 +19,18 @@ A dataset root looks like::
 Conventions: ego frame x forward, y left, z up (nuScenes); camera frame x right, y down,
 z forward (OpenCV); quaternions are stored (qw, qx, qy, qz) in tables and converted to the
 paper's (qx, qy, qz, qw) order only in trajectory QA text. Poses are 4x4 row-major.
+
+``dataset.json`` records what a reader needs to check the files against, not just trust them:
+
+- ``fingerprint``: sha256 over ``relpath \\0 sha256 \\n`` of every file but dataset.json, in relpath order
+  (compared component by component, as ``pathlib`` sorts); relpaths are POSIX, relative to the root. This formula
+  is a data-format contract: ``gdwm`` recomputes it from ``files`` when it verifies a dataset (``fingerprint_of``).
+- ``files``: ``{relpath: {"sha256": hex, "size": bytes, "mtime_ns": int}}`` of the same files, stat taken at
+  publish time (renaming the finished directory into place keeps file mtimes). A file whose size and mtime still
+  match can be trusted without reading it; any other is re-hashed.
+- ``params``: the builder's parameters that determine the content (``DatasetWriter(params=...)``; the ``data.<key>``
+  values it was built with, e.g. synthetic_mini's num_scenes, seed, width). ``gdwm run`` refuses a dataset whose
+  recorded params differ from the requested ``data.<key>``. May be empty; absent in datasets of older versions.
 """
 
 from __future__ import annotations
@@ -29,14 +41,16 @@ import os
 import shutil
 import tempfile
 import uuid
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+
+from pipelines.data.config import DatasetConfig
 
 LAYOUT_VERSION = 1
 CAMERAS = (
@@ -316,21 +330,69 @@ def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def fingerprint_tree(root: Path) -> tuple[str, int, int]:
-    """(sha256 over sorted (relpath, sha256) of every file but dataset.json, file count, bytes)."""
+def _files_under(root: Path) -> list[str]:
+    """POSIX relpaths of every file under ``root`` but its dataset.json (symlinked folders are not followed)."""
+    out: list[str] = []
+    stack = [(root, "")]
+    while stack:
+        folder, prefix = stack.pop()
+        with os.scandir(folder) as it:
+            for e in it:
+                rel = prefix + e.name
+                if e.is_dir(follow_symlinks=False):
+                    stack.append((Path(e.path), rel + "/"))
+                elif e.is_file() and rel != "dataset.json":
+                    out.append(rel)
+    return out
+
+
+def relpath_order(rel: str) -> list[str]:
+    """Sort key of the fingerprint: path components, as ``pathlib`` orders paths ("a/b" before "a.c")."""
+    return rel.split("/")
+
+
+def fingerprint_of(hashes: Mapping[str, str]) -> str:
+    """The dataset fingerprint from ``{relpath: sha256}``: sha256 over ``relpath \\0 sha256 \\n`` in relpath order."""
     h = hashlib.sha256()
-    count = size = 0
-    for path in sorted(p for p in root.rglob("*") if p.is_file()):
-        rel = path.relative_to(root).as_posix()
-        if rel == "dataset.json":
-            continue
+    for rel in sorted(hashes, key=relpath_order):
         h.update(rel.encode())
         h.update(b"\0")
-        h.update(file_sha256(path).encode())
+        h.update(hashes[rel].encode())
         h.update(b"\n")
-        count += 1
-        size += path.stat().st_size
-    return h.hexdigest(), count, size
+    return h.hexdigest()
+
+
+def tree_files(root: Path) -> dict[str, dict]:
+    """``{relpath: {"sha256", "size", "mtime_ns"}}`` of every file under ``root`` but dataset.json, in relpath order."""
+    files = {}
+    for rel in sorted(_files_under(root), key=relpath_order):
+        path = root / rel
+        st = path.stat()
+        files[rel] = {"sha256": file_sha256(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    return files
+
+
+def fingerprint_tree(root: Path) -> tuple[str, int, int]:
+    """(sha256 over sorted (relpath, sha256) of every file but dataset.json, file count, bytes)."""
+    files = tree_files(root)
+    fingerprint = fingerprint_of({rel: f["sha256"] for rel, f in files.items()})
+    return fingerprint, len(files), sum(f["size"] for f in files.values())
+
+
+def plain(value):
+    """A JSON-able copy of a config value: mappings -> dict, sequences (but strings) -> list (OmegaConf too)."""
+    if isinstance(value, Mapping):
+        return {str(k): plain(v) for k, v in value.items()}
+    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
+        return [plain(v) for v in value]
+    return value
+
+
+def content_params(cfg, cls: type, skip: Iterable[str] = ()) -> dict:
+    """The ``params`` of a dataset: ``cfg``'s values of ``cls``'s dataclass fields, but those that do not change the
+    content (the ``DatasetConfig`` base fields: name, root, builder, needs_source, summarizer) and ``skip``."""
+    omit = {f.name for f in fields(DatasetConfig)} | set(skip)
+    return {f.name: plain(getattr(cfg, f.name)) for f in fields(cls) if f.name not in omit}
 
 
 # ----------------------------------------------------------------------------- writer
@@ -349,11 +411,15 @@ class DatasetWriter:
     dataset at ``root`` is untouched. ``overwrite=False`` refuses to replace one.
     """
 
-    def __init__(self, root: str | os.PathLike, name: str, source: str, overwrite: bool = False):
+    def __init__(
+        self, root: str | os.PathLike, name: str, source: str, overwrite: bool = False, params: Mapping | None = None
+    ):
         self.root = Path(root).resolve()
         self.name = name
         self.source = source
         self.overwrite = overwrite
+        self.params: dict = plain(params or {})
+        """What the content was built from (``dataset.json`` ``params``): the builder's ``data.<key>`` values."""
         self.tmp: Path | None = None
         self._tables = {k: _Rows(s, []) for k, s in TABLES.items()}
         self.extra_meta: dict = {}
@@ -427,7 +493,9 @@ class DatasetWriter:
             pq.write_table(table, self.tmp / f"{name}.parquet")
         scenes = pq.read_table(self.tmp / "scenes.parquet").num_rows
         frames = pq.read_table(self.tmp / "frames.parquet").num_rows
-        fingerprint, nfiles, nbytes = fingerprint_tree(self.tmp)
+        files = tree_files(self.tmp)
+        fingerprint = fingerprint_of({rel: f["sha256"] for rel, f in files.items()})
+        nfiles, nbytes = len(files), sum(f["size"] for f in files.values())
         meta = {
             "name": self.name,
             "layout_version": LAYOUT_VERSION,
@@ -438,8 +506,10 @@ class DatasetWriter:
             "num_frames": frames,
             "num_files": nfiles,
             "bytes": nbytes,
-            "fingerprint": fingerprint,
             **self.extra_meta,
+            "fingerprint": fingerprint,
+            "params": self.params,
+            "files": files,  # stat taken now: renaming the folder into place below keeps file mtimes
         }
         # dataset.json is written last: a reader trusts only a root that has it.
         (self.tmp / "dataset.json").write_text(json.dumps(meta, indent=2, sort_keys=True))

@@ -29,6 +29,7 @@ from pipelines.data.layout import (
     CAMERAS,
     DataError,
     DatasetWriter,
+    content_params,
     flat_pose,
     image_relpath,
     lidar_relpath,
@@ -88,7 +89,8 @@ def build(cfg: NuScenesConfig, root: Path, source: str | None, overwrite: bool =
     tables = NuScenesTables(src, cfg.version)
     scenes = _select_scenes(tables, cfg)
     names = sorted(s["name"] for s in scenes)
-    with DatasetWriter(root, cfg.name, source=f"{src} ({cfg.version})", overwrite=overwrite) as w:
+    params = content_params(cfg, NuScenesConfig)  # the conversion options; the nuScenes files are source=
+    with DatasetWriter(root, cfg.name, source=f"{src} ({cfg.version})", overwrite=overwrite, params=params) as w:
         for scene in scenes:
             _SceneWriter(w, tables, cfg, scene).write()
         w.extra_meta = {

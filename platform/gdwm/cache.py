@@ -6,6 +6,8 @@ Layout under the cache root (any ``pyarrow.fs`` URI, or a plain local path)::
     <root>/<stage>/<key[:2]>/<key>/<files...>       the stage's output, paths as in the source directory
     <root>/<stage>/<key[:2]>/.tmp-<key12>-<uuid>    a publish in progress, renamed onto <key> once complete
     <root>/<stage>/<key[:2]>/.trash-<key12>-<uuid>  a corrupt entry moved aside, being deleted
+    <root>/<stage>/.bases/<base>/<key>              index: the entries of one code-free key (``cache.reuse=all``)
+    <root>/<stage>/.used/<key>                      unix time of the entry's latest cache hit (``gdwm cache gc``)
 
 Written here because no maintained library publishes verified directories atomically through ``pyarrow.fs``.
 Object stores (S3, GCS, Azure) cannot rename directories, so there (and on any filesystem not known to rename
@@ -30,12 +32,14 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
+import pyarrow as pa
 import pyarrow.fs as pafs
 
 log = logging.getLogger(__name__)
 
 MANIFEST = "MANIFEST.json"
 CHUNK = 1 << 20
+USED_DIR = ".used"
 # pyarrow filesystems whose move() is an atomic directory rename that fails on a non-empty destination.
 RENAMES_DIRS = frozenset({"local", "mock"})
 _STAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
@@ -74,10 +78,16 @@ def cache_key(
     upstream: Mapping[str, str],
     data_fingerprint: str,
     scene: str | None = None,
+    code: str | None = None,
 ) -> str:
-    """sha256 hex of the canonical JSON of everything a stage's output depends on (DESIGN §4)."""
+    """sha256 hex of the canonical JSON of everything a stage's output depends on: name, version, config subset,
+    upstream keys, data fingerprint, scene and ``code`` (the fingerprint of the code and libraries it runs,
+    ``gdwm.fingerprint``). ``code=None`` gives the code-free key: an entry's ``base`` (its identity across code
+    versions, what ``cache.reuse=all`` looks up), and the whole key of entries written before code was an input."""
     payload = {"stage": stage, "version": version, "config": config, "upstream": dict(upstream)}
     payload |= {"data": data_fingerprint, "scene": scene}
+    if code is not None:
+        payload["code"] = code
     return hashlib.sha256(canonical_json(payload).encode()).hexdigest()
 
 
@@ -103,6 +113,17 @@ class Manifest:
     """The MLflow run that produced the entry."""
     created_at: float
     extra: dict
+    code: dict | None = None
+    """The code the entry was computed with: ``{"digest": ..., "files": {module file: hash}, "libraries":
+    {distribution: version}}`` (``gdwm.fingerprint``); None for an entry written before code was part of the key
+    ("unknown code", reused only under ``cache.reuse=all``)."""
+    base: str | None = None
+    """The entry's code-free key (``cache_key(..., code=None)`` over its upstream's bases): the same config, data and
+    scene under any code. None = ``key`` (entries written before code was part of the key)."""
+
+    @property
+    def identity(self) -> str:
+        return self.base or self.key
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True, indent=1, allow_nan=False)
@@ -111,7 +132,8 @@ class Manifest:
     def from_json(cls, text: str) -> Manifest:
         d = json.loads(text)
         names = {f.name for f in fields(cls)}
-        if not isinstance(d, dict) or set(d) != names:
+        optional = {"code", "base"}  # absent in manifests of older gdwm versions
+        if not isinstance(d, dict) or not names - optional <= set(d) <= names:
             raise ValueError(f"expected fields {sorted(names)}")
         files = tuple(FileEntry(str(f["path"]), str(f["sha256"]), int(f["size"])) for f in d.pop("files"))
         return cls(files=files, **d)
@@ -238,11 +260,32 @@ class Cache:
         if m is not None and verify:
             bad = self._verify(m, d)
         if bad is None:
+            if m is not None and verify:  # a use; an unverified lookup only plans
+                self.touch(stage, key)
             return m
         self.last_invalid.append((stage, key, bad))
         log.warning("cache %s/%s: %s; moving the entry aside to recompute (%s)", stage, key[:12], bad, self._scheme + d)
         self._discard(d, key)
         return None
+
+    def used_marker(self, stage: str, key: str) -> str:
+        """Path of the entry's "last used" marker: outside the entry (a file in it would fail verification)."""
+        self._dir(stage, key)  # validates both names
+        return f"{self.root}/{stage}/{USED_DIR}/{key}"
+
+    def touch(self, stage: str, key: str, when: float | None = None) -> None:
+        """Record a use of the entry (best effort: a read-only or flaky store never fails a lookup)."""
+        marker, text = self.used_marker(stage, key), repr(time.time() if when is None else when).encode()
+        try:
+            try:
+                with self.fs.open_output_stream(marker) as f:
+                    f.write(text)
+            except FileNotFoundError:  # the stage's first marker
+                self.fs.create_dir(marker.rsplit("/", 1)[0], recursive=True)
+                with self.fs.open_output_stream(marker) as f:
+                    f.write(text)
+        except (OSError, pa.ArrowException) as e:
+            log.debug("cache %s/%s: cannot record its use: %s", stage, key[:12], e)
 
     def _write_manifest(self, d: str, m: Manifest) -> None:
         with self.fs.open_output_stream(f"{d}/{MANIFEST}") as f:
@@ -278,14 +321,22 @@ class Cache:
         scene: str | None = None,
         run_id: str | None = None,
         extra: dict | None = None,
+        code: dict | None = None,
+        base: str | None = None,
+        replace: bool = False,
     ) -> Manifest:
-        """Copy ``src_dir`` into the entry for ``key`` atomically; if another writer won, return its manifest."""
+        """Copy ``src_dir`` into the entry for ``key`` atomically; if another writer won, return its manifest.
+
+        ``code`` is the stage's code fingerprint (its ``digest`` enters the key); ``replace`` puts this output in place
+        of an existing entry of the same key (a forced recompute: ``cache.reuse=none``, ``gdwm regress``)."""
         d = self._dir(stage, key)
-        expected = cache_key(stage, version, config, upstream, data_fingerprint, scene)
+        expected = cache_key(stage, version, config, upstream, data_fingerprint, scene, code and code["digest"])
         if key != expected:
             raise CacheError(f"stage {stage} key {key[:12]}: != cache_key() of the given inputs ({expected[:12]})")
         files = _scan(stage, key, Path(src_dir))
-        if not self.atomic_dirs and (theirs := self.lookup(stage, key)) is not None:
+        if replace:
+            self.invalidate(stage, key)
+        elif not self.atomic_dirs and (theirs := self.lookup(stage, key)) is not None:
             return theirs
         parent = d.rsplit("/", 1)[0]
         work = f"{parent}/.tmp-{key[:12]}-{uuid.uuid4().hex}" if self.atomic_dirs else d
@@ -294,21 +345,57 @@ class Cache:
             entries = tuple(FileEntry(rel, *self._upload(src, f"{work}/{rel}")) for rel, src in files)
             cfg, ext = json.loads(canonical_json(config)), json.loads(canonical_json(extra or {}))
             m = Manifest(
-                key, stage, version, cfg, dict(upstream), data_fingerprint, scene, entries, run_id, time.time(), ext
-            )
+                key, stage, version, cfg, dict(upstream), data_fingerprint, scene, entries, run_id, time.time(), ext,
+                json.loads(canonical_json(code)) if code is not None else None, base,
+            )  # fmt: skip
             self._write_manifest(work, m)  # last: only now is the entry complete
             if not self.atomic_dirs:
+                self._index_base(m)
                 return m
             for _ in range(3):
                 if (theirs := self.lookup(stage, key)) is not None:
                     return theirs
                 if self._move(work, d):
+                    self._index_base(m)
                     return m
             raise CacheError(f"stage {stage} key {key[:12]}: {self._scheme + d}: still contended after 3 attempts")
         finally:
             if self.atomic_dirs:
                 with contextlib.suppress(FileNotFoundError):
                     self.fs.delete_dir(work)
+
+    def _base_dir(self, stage: str, base: str) -> str:
+        self._dir(stage, base)  # validates both
+        return f"{self.root}/{stage}/.bases/{base}"
+
+    def _index_base(self, m: Manifest) -> None:
+        """Best effort: an entry missing from the index is only invisible to ``lookup_base``."""
+        if m.base is None or m.base == m.key:
+            return
+        with contextlib.suppress(OSError):
+            d = self._base_dir(m.stage, m.base)
+            self.fs.create_dir(d, recursive=True)
+            with self.fs.open_output_stream(f"{d}/{m.key}") as f:
+                f.write(b"")
+
+    def lookup_base(self, stage: str, base: str, verify: bool = True) -> Manifest | None:
+        """The newest complete entry of the code-free key ``base``: any code's (an entry written before code was part
+        of the key has key == base). Index files of entries gone (gc, invalidate) are dropped."""
+        d = self._base_dir(stage, base)
+        infos = self.fs.get_file_info(pafs.FileSelector(d, allow_not_found=True))
+        keys = {i.base_name for i in infos if _KEY_RE.fullmatch(i.base_name)} | {base}
+        found = []
+        for key in keys:
+            m, _ = self._load(stage, key, self._dir(stage, key))
+            if m is not None:
+                found.append(m)
+            elif key != base:
+                with contextlib.suppress(OSError):
+                    self.fs.delete_file(f"{d}/{key}")
+        for m in sorted(found, key=lambda m: m.created_at, reverse=True):
+            if (hit := self.lookup(stage, m.key, verify)) is not None:
+                return hit
+        return None
 
     def materialize(self, manifest: Manifest) -> Path:
         """A local directory with the entry's files: the entry itself locally, else a verified download into

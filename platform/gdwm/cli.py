@@ -36,6 +36,8 @@ class Command:
     """Overrides applied before the user's, e.g. the data group an import command implies."""
     flags: tuple[str, ...] = ()
     """``--flags`` the command accepts; they reach ``run`` in its argument list."""
+    options: tuple[str, ...] = ()
+    """``--flags`` taking a value (``--keep-last 3`` or ``--keep-last=3``); they reach ``run`` as ``--flag=VALUE``."""
 
 
 def _build_dataset(cfg: DictConfig, _args: list[str]) -> int:
@@ -46,7 +48,10 @@ def _build_dataset(cfg: DictConfig, _args: list[str]) -> int:
 
 
 def _data_info(cfg: DictConfig, _args: list[str]) -> int:
+    from gdwm.datasets import verification_line
+
     print_dataset_summary(get_method(cfg.data.summarizer)(Path(cfg.data.root)))
+    console.print(verification_line(Path(cfg.data.root)), markup=False)
     return 0
 
 
@@ -190,6 +195,22 @@ def _zoo(sub: str) -> Callable[[DictConfig, list[str]], int]:
     return run
 
 
+def _cache(sub: str) -> Callable[[DictConfig, list[str]], int]:
+    def run(cfg: DictConfig, args: list[str]) -> int:
+        from gdwm.housekeeping import SUBCOMMANDS, HousekeepingError, UsageError
+
+        try:
+            return SUBCOMMANDS[sub](cfg, args)
+        except UsageError as e:
+            err_console.print(f"gdwm cache {sub}: {e}", markup=False)
+            return 2
+        except HousekeepingError as e:
+            err_console.print(f"gdwm cache {sub}: {e}", markup=False)
+            return 1
+
+    return run
+
+
 def _config_show(cfg: DictConfig, _args: list[str]) -> int:
     console.print(OmegaConf.to_yaml(cfg), end="", markup=False)
     return 0
@@ -232,9 +253,10 @@ COMMANDS: dict[str, dict[str, Command]] = {
         "": Command(
             _regress,
             "benchmark regression: benchmark=NAME (conf/benchmark/, default nightly) vs its baseline; exit 0 ok, "
-            "1 regression, 2 error; --set-baseline records this run as the baseline",
+            "1 regression, 2 error; --set-baseline records this run as the baseline; evaluation targets and stages "
+            "whose code changed recompute, --fresh recomputes every stage",
             defaults=["benchmark=nightly"],
-            flags=("--set-baseline",),
+            flags=("--set-baseline", "--fresh"),
         ),
     },
     "compare": {
@@ -258,6 +280,27 @@ COMMANDS: dict[str, dict[str, Command]] = {
             ("promote", "set an alias: args.name=NAME args.version=N|@ALIAS [args.alias=champion]"),
             ("load", "download a version's files: args.name=NAME [args.version=N|@ALIAS] [args.out=DIR]"),
         )
+    },
+    "cache": {
+        "ls": Command(
+            _cache("ls"),
+            "entries, size, last use, runs and zoo versions per stage; args.stage=NAME lists one stage's entries",
+            defaults=["args=cache"],
+        ),
+        "gc": Command(
+            _cache("gc"),
+            "delete entries: --keep-last N (per stage and scene), --older-than AGE (30d; s/m/h/d/w), --max-size SIZE "
+            "(50GB, 50GiB; least recently used first), --dry-run; never an entry a zoo alias, a regression baseline "
+            "or a running run references, nor one used within args.grace=1h",
+            defaults=["args=cache"],
+            flags=("--dry-run",),
+            options=("--keep-last", "--older-than", "--max-size"),
+        ),
+        "invalidate": Command(
+            _cache("invalidate"),
+            "remove one entry and its training checkpoints: args.stage=NAME args.key=PREFIX (>= 8 hex characters)",
+            defaults=["args=cache"],
+        ),
     },
 }
 
@@ -330,6 +373,22 @@ def _user_sets_group(overrides: list[str], group: str) -> bool:
     return any(o.split("=", 1)[0].lstrip("+~") == group for o in overrides if "=" in o)
 
 
+def _join_options(args: list[str], options: tuple[str, ...]) -> tuple[list[str], str | None]:
+    """``--opt VALUE`` as ``--opt=VALUE``; the name of an option left without a value (followed by nothing, a flag or
+    an override KEY=VALUE), if any."""
+    out, i = [], 0
+    while i < len(args):
+        if args[i] in options:
+            if i + 1 == len(args) or args[i + 1].startswith("--") or "=" in args[i + 1]:
+                return out, args[i]
+            out.append(f"{args[i]}={args[i + 1]}")
+            i += 2
+        else:
+            out.append(args[i])
+            i += 1
+    return out, None
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     _load_plugin_commands()
@@ -355,7 +414,16 @@ def main(argv: list[str] | None = None) -> int:
         head = usage(command) if not sub else f"usage: gdwm {command} {sub} [overrides...]\n\n{spec.help}"
         print(f"{head}\n\n{_groups_help()}")
         return 0
-    flags = [o for o in overrides if o.startswith("--") and o not in spec.flags]
+    if spec.options:
+        overrides, missing = _join_options(overrides, spec.options)
+        if missing:
+            err_console.print(
+                f"gdwm {command} {sub}: {missing} needs a value ({missing} VALUE or {missing}=VALUE)", markup=False
+            )
+            return 2
+    flags = [
+        o for o in overrides if o.startswith("--") and o not in spec.flags and o.split("=", 1)[0] not in spec.options
+    ]
     if flags:
         err_console.print(
             f"gdwm {command} {sub}: unknown flag(s) {flags}; settings are overrides KEY=VALUE", markup=False

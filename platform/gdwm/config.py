@@ -13,6 +13,7 @@ import dataclasses
 import os
 import re
 from dataclasses import dataclass, field
+from enum import StrEnum
 from functools import cache
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -80,6 +81,12 @@ class TrackingConfig:
     """Sampling interval of MLflow system metrics on stage runs; <= 0 turns them off."""
 
 
+class ReuseMode(StrEnum):
+    same_code = "same_code"
+    all = "all"
+    none = "none"
+
+
 @dataclass
 class CacheConfig:
     """Content-addressed stage cache (DESIGN §4)."""
@@ -88,6 +95,29 @@ class CacheConfig:
     """A pyarrow.fs URI or local path: file:///..., s3://bucket/prefix, gs://..."""
     verify: bool = True
     """Verify sha256 of every file on lookup (a corrupted entry is reported and recomputed)."""
+    reuse: ReuseMode = ReuseMode.same_code
+    """Which entries count as a hit. ``same_code``: only one computed by the same code and libraries (the key holds
+    their fingerprint); ``all``: else the newest entry of the same config, version and data under any code (old
+    code included; the plan says so); ``none``: recompute every stage and replace its entry."""
+    reuse_stages: list[str] = field(default_factory=list)
+    """Stages pinned to ``all`` whatever ``reuse`` says: an earlier entry of the same config is reused even if
+    their code changed (e.g. ``[reconstruct]`` where a re-run costs hours of a 16-GPU cluster)."""
+    recompute: list[str] = field(default_factory=list)
+    """Stages that recompute even when an entry of the same code exists, replacing it (``gdwm regress`` sets its
+    evaluation targets here)."""
+
+
+@dataclass
+class CacheArgs:
+    """``gdwm cache ls|gc|invalidate`` (set them as ``args.KEY=VALUE``; gc's limits are ``--flags``)."""
+
+    stage: str | None = None
+    """ls: list this stage's entries (null = one summary row per stage); gc: only this stage; invalidate: required."""
+    key: str | None = None
+    """invalidate: the entry's key or a prefix of it (>= 8 hex characters) matching exactly one entry."""
+    grace: str = "1h"
+    """gc: never delete an entry created or used within this age (s, m, h, d, w), so a driver that just published or
+    looked it up can still read it."""
 
 
 @dataclass
@@ -224,6 +254,7 @@ def _register_platform(cs: ConfigStore) -> None:
     from gdwm.zoo.refs import ZooArgs
 
     cs.store(group="schema/args", name="zoo", node=ZooArgs)
+    cs.store(group="schema/args", name="cache", node=CacheArgs)
 
 
 @cache

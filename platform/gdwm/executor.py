@@ -1,14 +1,20 @@
 """Stages as Ray tasks whose arguments are upstream results; per-scene stages in actor pools.
 
-Each stage task computes its cache key from its upstream results' keys, returns at once on a
-cache hit (no MLflow run), else runs the stage under one MLflow run (one per cache key: a
-killed attempt's run is reopened, never duplicated), publishes atomically, registers the
-model-zoo components the stage declared (``ctx.register``) and returns. A stage
-task that fails raises ``StageFailed``; Ray then never starts its descendants.
+Each stage task computes its cache key from its upstream results' keys and its code fingerprint
+(``RunEnv.code``, computed on the driver), returns at once on a cache hit (no MLflow run), else
+runs the stage under one MLflow run (one per cache key: a killed attempt's run is reopened, never
+duplicated), publishes atomically, registers the model-zoo components the stage declared
+(``ctx.register``) and returns. A stage task that fails raises ``StageFailed``; Ray then never
+starts its descendants.
+
+What counts as a hit is ``cache.reuse`` (per stage, ``RunEnv.reuse``): ``same_code`` -- the entry of this very
+key; ``all`` -- else the newest entry of the same config under any code (its ``base``); ``none`` -- never: the
+stage recomputes, its output replaces the entry and its training checkpoints are discarded first.
 """
 
 from __future__ import annotations
 
+import json
 import tempfile
 import traceback
 from collections.abc import Mapping
@@ -18,13 +24,18 @@ from typing import Any
 
 import ray
 
-from gdwm.cache import Cache, cache_key
+from gdwm.cache import Cache, Manifest, cache_key
 from gdwm.determinism import stage_start
 from gdwm.stage import StageContext, StageDef, UpstreamOutput
 from gdwm.tracking import Tracker, call
 from gdwm.zoo.registry import lineage_tags
 
 TAG_STAGE, TAG_KEY, TAG_VERSION, TAG_SCENES = "gdwm.stage", "gdwm.cache_key", "gdwm.version", "gdwm.scenes"
+TAG_CODE = "gdwm.code"
+SAME_CODE, ALL, NONE = "same_code", "all", "none"
+"""``cache.reuse`` modes (``gdwm.config.ReuseMode``)."""
+COMPUTED, REUSED_SAME, REUSED_OTHER, REUSED_UNKNOWN = "", "same code", "other code", "unknown code"
+"""``StageResult.reused``: computed now, or the entry it came from was computed by the same/other/unknown code."""
 
 
 class StageFailed(Exception):
@@ -63,6 +74,10 @@ class RunEnv:
     run_tags: Mapping[str, str] = field(default_factory=dict)
     tracking_uri: str | None = None
     """Where stages read zoo versions from (``ctx.zoo_path``); writes go through ``sink``."""
+    code: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    """Stage -> its code fingerprint (``gdwm.fingerprint.CodeFingerprint.as_dict``); its digest enters the key."""
+    reuse: Mapping[str, str] = field(default_factory=dict)
+    """Stage -> ``cache.reuse`` mode (default ``same_code``)."""
 
 
 @dataclass(frozen=True)
@@ -78,6 +93,13 @@ class StageResult:
     failed: Mapping[str, str] = field(default_factory=dict)
     """Per-scene stages with on_scene_error=skip: scene -> traceback of the scenes left out."""
     extra: Mapping[str, Any] = field(default_factory=dict)
+    base: str = ""
+    """The code-free key (per-scene stages: over the scenes' bases), what ``cache.reuse=all`` looks up."""
+    bases: Mapping[str, str] = field(default_factory=dict)
+    """Per-scene stages: scene -> that scene's base."""
+    reused: str = COMPUTED
+    """Where the output came from: ``COMPUTED`` now, or an entry of the same / other / unknown code (per-scene
+    stages: the least trustworthy of their scenes')."""
 
 
 SEED_KEY = "seed"
@@ -95,12 +117,26 @@ def stage_config(sd: StageDef, cfg: Any) -> dict[str, Any]:
     return out
 
 
+def code_digest(env: RunEnv, stage: str) -> str | None:
+    fp = env.code.get(stage)
+    return fp["digest"] if fp else None
+
+
 def stage_key(sd: StageDef, subset: Mapping, upstream: Mapping[str, str], env: RunEnv, scene: str | None = None) -> str:
+    """The entry's key: config subset, upstream keys, data, scene and the stage's code fingerprint."""
+    return cache_key(sd.name, sd.version, dict(subset), dict(upstream), env.data_fingerprint, scene,
+                     code_digest(env, sd.name))  # fmt: skip
+
+
+def stage_base(sd: StageDef, subset: Mapping, upstream: Mapping[str, str], env: RunEnv, scene: str | None = None
+               ) -> str:  # fmt: skip
+    """The code-free key over the upstream's bases: the same config and data under any code."""
     return cache_key(sd.name, sd.version, dict(subset), dict(upstream), env.data_fingerprint, scene)
 
 
 def aggregate_key(sd: StageDef, subset: Mapping, scene_keys: Mapping[str, str], env: RunEnv) -> str:
-    """A per-scene stage's key as seen downstream: it changes with any scene's key or the set of scenes."""
+    """A per-scene stage's key as seen downstream: it changes with any scene's key or the set of scenes (given
+    scene bases, the aggregate base)."""
     return cache_key(
         sd.name, sd.version, dict(subset), {f"scene:{s}": k for s, k in scene_keys.items()}, env.data_fingerprint
     )
@@ -112,6 +148,61 @@ def upstream_keys(results: tuple[StageResult, ...], scene: str | None) -> dict[s
     for r in results:
         out[r.stage] = r.scenes[scene][0] if (scene is not None and r.scenes) else r.key
     return out
+
+
+def upstream_bases(results: tuple[StageResult, ...], scene: str | None) -> dict[str, str]:
+    out = {}
+    for r in results:
+        out[r.stage] = r.bases[scene] if (scene is not None and r.bases) else r.base
+    return out
+
+
+def find_entry(cache: Cache, stage: str, key: str, base: str, mode: str, verify: bool = True
+               ) -> tuple[Manifest | None, str]:  # fmt: skip
+    """The entry a stage reuses under ``mode`` and where it came from (``REUSED_*``); (None, COMPUTED) = run it."""
+    if mode == NONE:
+        return None, COMPUTED
+    m = cache.lookup(stage, key, verify)
+    if m is not None:
+        return m, REUSED_SAME
+    if mode != ALL:
+        return None, COMPUTED
+    m = cache.lookup_base(stage, base, verify)
+    if m is None:
+        return None, COMPUTED
+    return m, REUSED_UNKNOWN if m.code is None else REUSED_OTHER
+
+
+def least_trusted(how: list[str]) -> str:
+    """A per-scene stage's provenance: computed if any scene ran, else the least trustworthy reuse."""
+    for h in (COMPUTED, REUSED_UNKNOWN, REUSED_OTHER):
+        if h in how:
+            return h
+    return REUSED_SAME
+
+
+def _discard_checkpoints(checkpoint_root: str, stage: str, key: str) -> None:
+    """A recompute (forced, or after a corrupt entry) must not resume from that key's old checkpoints."""
+    from gdwm.training import discard_checkpoints
+
+    discard_checkpoints(checkpoint_root, stage, key)
+
+
+def verified(cache: Cache, checkpoint_root: str, stage: str, key: str) -> bool:
+    """The entry is present and intact; a corrupt one is moved aside with its key's training checkpoints."""
+    if cache.lookup(stage, key, verify=True) is not None:
+        return True
+    if any(k == key for _, k, _ in cache.last_invalid):
+        _discard_checkpoints(checkpoint_root, stage, key)
+    return False
+
+
+def _lookup(cache: Cache, env: RunEnv, sd: StageDef, key: str, base: str) -> tuple[Manifest | None, str]:
+    mode = env.reuse.get(sd.name, SAME_CODE)
+    hit, how = find_entry(cache, sd.name, key, base, mode)
+    if hit is None and (mode == NONE or any(k == key for _, k, _ in cache.last_invalid)):
+        _discard_checkpoints(env.checkpoint_root, sd.name, key)
+    return hit, how
 
 
 def upstream_views(results: tuple[StageResult, ...]) -> dict[str, UpstreamOutput]:
@@ -133,6 +224,14 @@ def _progress(env: RunEnv, stage: str, scene: str | None, status: str, **kw) -> 
 
 
 def _open_stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping) -> str:
+    run_id = _stage_run(env, sd, key, subset)
+    if (fp := env.code.get(sd.name)) is not None:  # the code behind the key: its digest, files and libraries
+        call(env.sink, "set_tags", run_id, {TAG_CODE: fp["digest"]})
+        call(env.sink, "log_text", run_id, json.dumps(fp, indent=1, sort_keys=True), "code.json")
+    return run_id
+
+
+def _stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping) -> str:
     """The MLflow run for this key: reopened if an earlier attempt left one, else created under the parent."""
     found = call(env.sink, "search_runs", f"tags.`{TAG_KEY}` = '{key}' and tags.`{TAG_STAGE}` = '{sd.name}'")
     if found:
@@ -168,7 +267,7 @@ def _context(sd: StageDef, key: str, subset, env: RunEnv, results, out_dir: Path
     )
 
 
-def _execute(sd, key, subset, env, results, tracker, scene=None, state=None) -> tuple[str, dict]:
+def _execute(sd, key, base, subset, env, results, tracker, scene=None, state=None) -> tuple[str, dict]:
     """Run the stage function into a temp dir and publish it; returns (local entry dir, manifest extra)."""
     cache = Cache(env.cache_uri)
     with tempfile.TemporaryDirectory(prefix=f"gdwm-{sd.name}-") as tmp:
@@ -192,6 +291,9 @@ def _execute(sd, key, subset, env, results, tracker, scene=None, state=None) -> 
             scene=scene,
             run_id=tracker.run_id,
             extra=extra,
+            code=env.code.get(sd.name),
+            base=base,
+            replace=env.reuse.get(sd.name) == NONE,
         )
         if m.run_id == tracker.run_id:  # else another attempt published this key first (and registered its own)
             for r in ctx.registrations:
@@ -225,15 +327,17 @@ def run_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResult) ->
     """One whole-dataset stage (``per_scene=False``)."""
     cache = Cache(env.cache_uri)
     key = stage_key(sd, subset, upstream_keys(results, None), env)
-    hit = cache.lookup(sd.name, key)
+    base = stage_base(sd, subset, upstream_bases(results, None), env)
+    hit, how = _lookup(cache, env, sd, key, base)
     if hit is not None:
-        _progress(env, sd.name, None, "cached", key=key, run_id=hit.run_id or "")
-        return StageResult(sd.name, key, True, hit.run_id, str(cache.materialize(hit)), extra=dict(hit.extra))
+        _progress(env, sd.name, None, "cached", key=hit.key, run_id=hit.run_id or "")
+        path = str(cache.materialize(hit))
+        return StageResult(sd.name, hit.key, True, hit.run_id, path, extra=dict(hit.extra), base=base, reused=how)
     run_id = _open_stage_run(env, sd, key, subset)
     _progress(env, sd.name, None, "running", key=key, run_id=run_id)
     tracker = Tracker(env.sink, run_id)
     try:
-        path, extra = _execute(sd, key, subset, env, results, tracker)
+        path, extra = _execute(sd, key, base, subset, env, results, tracker)
     except Exception as e:
         tb = traceback.format_exc()
         _end_failed(env, run_id, tb)
@@ -241,7 +345,7 @@ def run_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResult) ->
         raise StageFailed(sd.name, {None: tb}) from None
     call(env.sink, "end_run", run_id, "FINISHED")
     _progress(env, sd.name, None, "done")
-    return StageResult(sd.name, key, False, run_id, path, extra=extra)
+    return StageResult(sd.name, key, False, run_id, path, extra=extra, base=base)
 
 
 def _end_failed(env: RunEnv, run_id: str, text: str) -> None:
@@ -257,10 +361,10 @@ class SceneWorker:
         stage_start(0, num_cpus, deterministic)  # heavy state (a random projection, say) the same in every actor
         self.state = sd.setup(subset) if sd.setup is not None else None
 
-    def process(self, scene: str, key: str, subset: dict, env: RunEnv, run_id: str, *results: StageResult):
+    def process(self, scene: str, key: str, base: str, subset: dict, env: RunEnv, run_id: str, *results: StageResult):
         _progress(env, self.sd.name, scene, "running", key=key)
         tracker = ScopedTracker(env.sink, run_id, f"{scene}/")
-        path, _ = _execute(self.sd, key, subset, env, results, tracker, scene, self.state)
+        path, _ = _execute(self.sd, key, base, subset, env, results, tracker, scene, self.state)
         _progress(env, self.sd.name, scene, "done", key=key)
         return path
 
@@ -272,23 +376,27 @@ def run_scene_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResu
     upstream_failed = {s for r in results for s in r.failed}
     scenes = [s for s in env.scenes if s not in upstream_failed]
     keys = {s: stage_key(sd, subset, upstream_keys(results, s), env, scene=s) for s in scenes}
+    bases = {s: stage_base(sd, subset, upstream_bases(results, s), env, scene=s) for s in scenes}
     done: dict[str, tuple[str, str]] = {}
+    how: dict[str, str] = {}
     misses = []
     for s in scenes:
-        hit = cache.lookup(sd.name, keys[s])
+        hit, how[s] = _lookup(cache, env, sd, keys[s], bases[s])
         if hit is None:
             misses.append(s)
         else:
-            done[s] = (keys[s], str(cache.materialize(hit)))
-            _progress(env, sd.name, s, "cached", key=keys[s])
-    agg = aggregate_key(sd, subset, keys, env)
+            done[s] = (hit.key, str(cache.materialize(hit)))
+            _progress(env, sd.name, s, "cached", key=hit.key)
+    agg = aggregate_key(sd, subset, {s: done[s][0] if s in done else keys[s] for s in scenes}, env)
+    agg_base = aggregate_key(sd, subset, bases, env)
     if not misses:
         _progress(env, sd.name, None, "cached", key=agg)
-        return StageResult(sd.name, agg, True, None, scenes=done)
+        return StageResult(sd.name, agg, True, None, scenes=done, base=agg_base, bases=bases,
+                           reused=least_trusted(list(how.values())))  # fmt: skip
     run_id = _open_stage_run(env, sd, agg, subset)
     call(env.sink, "set_tags", run_id, {TAG_SCENES: ",".join(misses)})
     _progress(env, sd.name, None, "running", key=agg, run_id=run_id)
-    errors = _run_pool(sd, subset, env, run_id, results, misses, keys, done)
+    errors = _run_pool(sd, subset, env, run_id, results, misses, keys, bases, done)
     for s in upstream_failed:
         _progress(env, sd.name, s, "blocked")
     if errors and env.on_scene_error == "fail":
@@ -299,12 +407,14 @@ def run_scene_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResu
         call(env.sink, "log_text", run_id, "\n\n".join(f"== {s} ==\n{tb}" for s, tb in errors.items()), "skipped.txt")
     done = {s: done[s] for s in scenes if s in done}  # the dataset's scene order, not the order scenes finished in
     agg = aggregate_key(sd, subset, {s: k for s, (k, _) in done.items()}, env)
+    agg_base = aggregate_key(sd, subset, {s: bases[s] for s in done}, env)
     call(env.sink, "end_run", run_id, "FINISHED")
     _progress(env, sd.name, None, "done", key=agg, message=f"{len(errors)} skipped" if errors else "")
-    return StageResult(sd.name, agg, False, run_id, scenes=done, failed={**errors})
+    return StageResult(sd.name, agg, False, run_id, scenes=done, failed={**errors}, base=agg_base,
+                       bases={s: bases[s] for s in done})  # fmt: skip
 
 
-def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, done) -> dict[str, str]:
+def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, bases, done) -> dict[str, str]:
     res = env.resources.get(sd.resources, {})
     n = max(1, min(len(misses), int(res.get("num_workers", 1)) or 1))
     actor_cls = ray.remote(SceneWorker).options(
@@ -320,7 +430,7 @@ def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, done) -> d
 
     def submit(actor) -> None:
         s = queue.pop(0)
-        ref = actor.process.remote(s, keys[s], subset, env, run_id, *results)
+        ref = actor.process.remote(s, keys[s], bases[s], subset, env, run_id, *results)
         running[ref] = (s, actor)
 
     try:

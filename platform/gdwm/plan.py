@@ -17,12 +17,28 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
-from gdwm.cache import Cache
+from gdwm.cache import Cache, Manifest
 from gdwm.config import ConfigError, SweepConfig, SweepRow, load_config
 from gdwm.dag import DagError, Pipeline, load_pipeline
-from gdwm.executor import RunEnv, StageResult, aggregate_key, stage_config, stage_key, upstream_keys
+from gdwm.executor import (
+    ALL,
+    COMPUTED,
+    NONE,
+    REUSED_SAME,
+    RunEnv,
+    StageResult,
+    aggregate_key,
+    find_entry,
+    least_trusted,
+    stage_base,
+    stage_config,
+    stage_key,
+    upstream_bases,
+    upstream_keys,
+)
+from gdwm.fingerprint import stage_fingerprint
 from gdwm.zoo.refs import ZooError
 from gdwm.zoo.registry import pin_references
 
@@ -40,8 +56,22 @@ class PlanRow:
     stage: str
     scene: str | None
     key: str
+    """The entry's key: the one a cached row reuses (under ``cache.reuse=all`` maybe another code's), else the
+    key the stage will publish."""
     status: str  # cached | to run
     resources: str
+    reused: str = COMPUTED
+    """Cached rows: ``same code``, ``other code`` or ``unknown code`` (``gdwm.executor.REUSED_*``)."""
+    why: str = ""
+    """Rows to run where the stage has entries: what differs from the closest one (code, library, config, upstream,
+    data, version), e.g. ``code: model_zoo/adapter.py``; ``recompute`` when forced."""
+
+    @property
+    def shown(self) -> str:
+        """The status as plans print it."""
+        if self.status == "cached" and self.reused not in (COMPUTED, REUSED_SAME):
+            return f"cached ({self.reused})"
+        return self.status
 
 
 @dataclass
@@ -195,7 +225,40 @@ def compose(
                 raise
             raise PlanError(f"{here}: {e}") from e
         t.settings = env_settings(t.cfg, ensure_data(t.cfg))
+        t.settings |= code_settings(t.cfg, t.pipe, t.order, here)
         t.plan, t.keys = plan_keys(t.pipe, t.order, t.cfg, t.env())
+
+
+_WARNED: set[str] = set()
+
+
+def code_settings(cfg: DictConfig, pipe: Pipeline, order: list[str], where: str) -> dict:
+    """``RunEnv.code`` (each stage's code fingerprint) and ``RunEnv.reuse`` (each stage's ``cache.reuse`` mode);
+    a module that can't be hashed is named once per process."""
+    for key in ("cache.reuse_stages", "cache.recompute"):
+        for name in OmegaConf.select(cfg, key) or []:
+            if name not in pipe.stages:
+                raise PlanError(f"{where}: {key}: no stage '{name}' in pipeline '{pipe.name}' "
+                                f"(stages: {', '.join(pipe.order)})")  # fmt: skip
+    code, reuse = {}, {}
+    for name in order:
+        sd = pipe.stages[name]
+        fp = stage_fingerprint(sd, stage_config(sd, cfg))
+        code[name] = fp.as_dict()
+        fresh = [f for f in fp.unhashable if f not in _WARNED]
+        if fresh:
+            _WARNED.update(fresh)
+            from gdwm.term import err_console
+
+            err_console.print(
+                f"stage {name}: {', '.join(fresh)} has no Python source to hash; changes to it are not seen by the "
+                "cache key (bump the stage's version when it changes)",
+                markup=False,
+            )
+        reuse[name] = (
+            NONE if name in cfg.cache.recompute else ALL if name in cfg.cache.reuse_stages else str(cfg.cache.reuse)
+        )
+    return {"code": code, "reuse": reuse}
 
 
 def read_dataset_meta(root: Path) -> dict:
@@ -206,7 +269,8 @@ def read_dataset_meta(root: Path) -> dict:
 
 
 def ensure_data(cfg: DictConfig) -> dict:
-    """The dataset's meta; a dataset that needs no source (synthetic) is generated first if absent."""
+    """The dataset's meta, verified (``gdwm.datasets.check_dataset``); a dataset that needs no source (synthetic) is
+    generated first if absent."""
     root = Path(cfg.data.root)
     if not (root / "dataset.json").is_file():
         if cfg.source is None and not cfg.data.needs_source:
@@ -220,7 +284,12 @@ def ensure_data(cfg: DictConfig) -> dict:
                 f"dataset '{cfg.data.name}' not found at {root}: build it first "
                 f"(gdwm data import-gaussiandwm / convert-nuscenes source=DIR data={cfg.data.name})"
             )
-    return read_dataset_meta(root)
+    from gdwm.datasets import DataMismatch, check_dataset
+
+    try:  # the fingerprint of the files as they are now; params other than requested: exit 2 before anything runs
+        return check_dataset(cfg.data, root, read_dataset_meta(root))
+    except DataMismatch as e:
+        raise PlanError(str(e)) from e
 
 
 def env_settings(cfg: DictConfig, meta: dict) -> dict:
@@ -243,30 +312,116 @@ def env_settings(cfg: DictConfig, meta: dict) -> dict:
     )
 
 
-def _plan_result(sd, sub, env: RunEnv, ups: tuple[StageResult, ...], cache: Cache, rows: list[PlanRow]) -> StageResult:
+def reasons(trials: list[Trial]) -> dict[str, list[str]]:
+    """Stage -> the distinct reasons its rows about to run give, in plan order (what ``--dry-run`` prints)."""
+    out: dict[str, list[str]] = {}
+    for t in trials:
+        for r in t.plan:
+            if r.status == "to run" and r.why and r.why not in out.setdefault(r.stage, []):
+                out[r.stage].append(r.why)
+    return {s: w for s, w in out.items() if w}
+
+
+def print_reasons(trials: list[Trial]) -> None:
+    from gdwm.term import console
+
+    why = reasons(trials)
+    if why:
+        console.print("why stages re-run (compared with their closest cache entry):")
+    for stage, lines in why.items():
+        for line in lines[:3]:
+            console.print(f"  {stage:<14} {line}", markup=False)
+        if len(lines) > 3:
+            console.print(f"  {stage:<14} (+{len(lines) - 3} more)", markup=False)
+
+
+class _Entries:
+    """Every entry of a stage, read once per plan: what a stage about to run is compared with."""
+
+    def __init__(self, cache: Cache):
+        self.cache = cache
+        self.by_stage: dict[str, list[Manifest]] = {}
+
+    def of(self, stage: str, scene: str | None) -> list[Manifest]:
+        if stage not in self.by_stage:
+            self.by_stage[stage] = self.cache.entries(stage)
+        return [m for m in self.by_stage[stage] if m.scene == scene]
+
+
+def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(d, dict) and d:
+        return {k: v for key, val in d.items() for k, v in _flat(val, f"{prefix}{key}.").items()}
+    return {prefix.rstrip("."): d}
+
+
+def _short(v: Any) -> str:
+    text = json.dumps(v) if not isinstance(v, str) else v
+    return text if len(text) <= 24 else text[:21] + "..."
+
+
+def why(entries: list[Manifest], sd, sub: dict, upstream: dict[str, str], base: str, env: RunEnv) -> str:
+    """What differs between a stage about to run and its closest entry: the newest of the same config (then code,
+    libraries, upstream or data changed), else the newest of the stage (then the config says how). "" = no entry."""
+    if not entries:
+        return ""
+    same = [m for m in entries if m.identity == base]
+    ref = max(same or entries, key=lambda m: m.created_at)
+    out = [f"version: {ref.version} -> {sd.version}"] if ref.version != sd.version else []
+    old, new = _flat(ref.config), _flat(dict(sub))
+    out += [f"config: {k} {_short(old.get(k, '-'))} -> {_short(new.get(k, '-'))}"
+            for k in sorted(old.keys() | new.keys()) if old.get(k, "-") != new.get(k, "-")]  # fmt: skip
+    if ref.data_fingerprint != env.data_fingerprint:
+        out.append(f"data: {ref.data_fingerprint[:12]} -> {env.data_fingerprint[:12]}")
+    mine = env.code.get(sd.name)
+    if ref.code is None:
+        out.append("code: unknown (an entry of an older gdwm)")
+    elif mine is not None:
+        a, b = ref.code.get("files", {}), mine["files"]
+        files = [f for f in sorted(a.keys() | b.keys()) if a.get(f) != b.get(f)]
+        if files:
+            out.append("code: " + ", ".join(files[:3]) + (f" (+{len(files) - 3} more)" if len(files) > 3 else ""))
+        la, lb = ref.code.get("libraries", {}), mine["libraries"]
+        out += [f"library: {d} {la.get(d, '-')} -> {lb.get(d, '-')}"
+                for d in sorted(la.keys() | lb.keys()) if la.get(d) != lb.get(d)]  # fmt: skip
+    ups = [u for u in sorted(upstream) if ref.upstream.get(u) != upstream[u]]
+    if ups and ref.scene is None and any(u.startswith("scene:") for u in ref.upstream):
+        ups = []  # an aggregate's scenes, not upstream stages
+    if ups:
+        out.append("upstream: " + ", ".join(ups))
+    if env.reuse.get(sd.name) == NONE:
+        out.insert(0, "recompute")
+    return "; ".join(out) or "the entry was removed"
+
+
+def _plan_result(sd, sub, env: RunEnv, ups: tuple[StageResult, ...], cache: Cache, rows: list[PlanRow],
+                 entries: _Entries) -> StageResult:  # fmt: skip
     """Predict one stage's keys and cache status, assuming every upstream scene succeeds."""
+    mode = env.reuse.get(sd.name, "same_code")
+    scenes = list(env.scenes) if sd.per_scene else [None]
+    keys, bases, how = {}, {}, {}
+    for s in scenes:
+        upk = upstream_keys(ups, s)
+        key, bases[s] = stage_key(sd, sub, upk, env, scene=s), stage_base(sd, sub, upstream_bases(ups, s), env, scene=s)
+        hit, how[s] = find_entry(cache, sd.name, key, bases[s], mode, verify=False)
+        keys[s] = hit.key if hit is not None else key
+        reason = "" if hit is not None else why(entries.of(sd.name, s), sd, sub, upk, bases[s], env)
+        rows.append(PlanRow(sd.name, s, keys[s], "cached" if hit else "to run", sd.resources, how[s], reason))
     if sd.per_scene:
-        keys = {s: stage_key(sd, sub, upstream_keys(ups, s), env, scene=s) for s in env.scenes}
-        for s, k in keys.items():
-            hit = cache.lookup(sd.name, k, verify=False) is not None
-            rows.append(PlanRow(sd.name, s, k, "cached" if hit else "to run", sd.resources))
-        return StageResult(
-            sd.name, aggregate_key(sd, sub, keys, env), False, None, scenes={s: (k, "") for s, k in keys.items()}
-        )
-    key = stage_key(sd, sub, upstream_keys(ups, None), env)
-    hit = cache.lookup(sd.name, key, verify=False) is not None
-    rows.append(PlanRow(sd.name, None, key, "cached" if hit else "to run", sd.resources))
-    return StageResult(sd.name, key, hit, None)
+        return StageResult(sd.name, aggregate_key(sd, sub, keys, env), False, None,
+                           scenes={s: (k, "") for s, k in keys.items()}, base=aggregate_key(sd, sub, bases, env),
+                           bases=bases, reused=least_trusted(list(how.values())))  # fmt: skip
+    return StageResult(sd.name, keys[None], how[None] != COMPUTED, None, base=bases[None], reused=how[None])
 
 
 def plan_keys(pipe: Pipeline, order: list[str], cfg: DictConfig, env: RunEnv) -> tuple[list[PlanRow], dict[str, str]]:
     """Keys depend on upstream keys, not outputs, so the whole DAG's keys are known before anything runs: the plan's
     rows, and each stage's key as its downstream sees it (per-scene stages: the aggregate key)."""
     cache = Cache(env.cache_uri)
+    entries = _Entries(cache)
     rows: list[PlanRow] = []
     predicted: dict[str, StageResult] = {}
     for name in order:
         sd = pipe.stages[name]
         ups = tuple(predicted[u] for u in sd.upstream)
-        predicted[name] = _plan_result(sd, stage_config(sd, cfg), env, ups, cache, rows)
+        predicted[name] = _plan_result(sd, stage_config(sd, cfg), env, ups, cache, rows, entries)
     return rows, {name: r.key for name, r in predicted.items()}

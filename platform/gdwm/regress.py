@@ -17,6 +17,7 @@ per-sample predictions, combined over seeds) finds it significant, beyond the to
 from __future__ import annotations
 
 import importlib
+import json
 import math
 import re
 import sys
@@ -213,13 +214,14 @@ def load_benchmark(cfg: DictConfig) -> BenchmarkConfig:
 def regress(cfg: DictConfig, argv: list[str]) -> int:
     """Run the suite; 0 no regression, 1 regression (named), 2 error."""
     from gdwm.plan import PlanError
-    from gdwm.runner import aggregate, evaluation_metrics, evaluation_samples, run_pipeline
+    from gdwm.runner import CACHE_KEYS, aggregate, evaluation_metrics, evaluation_samples, run_pipeline
     from gdwm.tracking import TrackingBackend
 
     bench = load_benchmark(cfg)
     user = [a for a in argv if not a.startswith("--") and a.split("=", 1)[0] != "benchmark"]
     overrides = [f"targets=[{','.join(bench.targets)}]", *bench.overrides, *user]
     try:
+        overrides += honest_overrides(load_config(overrides), "--fresh" in argv)
         run_cfg = load_config(overrides)
     except ConfigError as e:
         raise RegressError(f"benchmark '{bench.name}' overrides: {e}") from e
@@ -239,6 +241,7 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
     per_seed = [evaluation_metrics(t.trial.pipe, t.results) for t in summary.trials]
     now = aggregate(per_seed) | perf_metrics(bench.perf)
     now_samples = {t.trial.seed: evaluation_samples(t.trial.pipe, t.results) for t in summary.trials}
+    stages = provenance(summary.trials)
 
     backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
     base_run = _baseline(backend, bench)
@@ -247,6 +250,8 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
         paired = _paired(backend, bench, base_run["run_id"], now_samples)
     rows = check(bench.metrics, base_run["metrics"] if base_run else None, now, paired)
     print_rows(bench, rows, base_run, [t.trial.seed for t in summary.trials])
+    flags = baseline_flags(backend, base_run["run_id"], stages) if base_run else []
+    print_provenance(stages, flags)
     run_id = backend.create_run(
         f"regress-{bench.name}",
         {"gdwm.kind": KIND, "gdwm.benchmark": bench.name, "gdwm.verdict": "fail" if failed(rows) else "pass",
@@ -257,6 +262,10 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
         backend.log_metrics(run_id, now)
         backend.log_params(run_id, {"overrides": " ".join(bench.overrides + user), "targets": bench.targets})
         backend.log_text(run_id, markdown(rows), "regression.md")
+        backend.log_text(run_id, json.dumps(stages, indent=1, sort_keys=True), PROVENANCE)
+        backend.log_text(run_id, json.dumps(_entry_keys(summary.trials), indent=1, sort_keys=True), CACHE_KEYS)
+        if flags:
+            backend.set_tags(run_id, {"gdwm.baseline_flag": "; ".join(flags)[:4000]})
         _log_samples(backend, run_id, now_samples)
         with tempfile.TemporaryDirectory() as tmp:
             plot = trend_plot(backend, bench, now, Path(tmp) / "trend.png")
@@ -273,6 +282,83 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
         err_console.print(f"regression: {r.metric} {_fmt(r.baseline)} -> {_fmt(r.now)} (tolerance {r.tolerance}){why}",
                           markup=False)  # fmt: skip
     return 1 if bad and "--set-baseline" not in argv else 0
+
+
+# ---- honesty: what was recomputed, and what the baseline was computed from --------------------------------------
+PROVENANCE = "provenance.json"
+"""Artifact of a regression run: ``{stage: {"status": ..., "code": digest}}`` over its trials."""
+RECOMPUTED = "recomputed"
+
+
+def honest_overrides(run_cfg: DictConfig, fresh: bool) -> list[str]:
+    """The suite's evaluation targets always recompute (``cache.recompute``); stages whose code or libraries differ
+    from the cached entries' re-run through their keys; ``--fresh`` recomputes everything (``cache.reuse=none``)."""
+    from gdwm.dag import load_pipeline
+
+    pipe = load_pipeline(run_cfg, list(run_cfg.targets) or None)
+    order = pipe.ancestors(list(run_cfg.targets)) if run_cfg.targets else list(pipe.order)
+    evaluation = [n for n in order if pipe.stages[n].evaluation]
+    out = [f"cache.recompute=[{','.join(dict.fromkeys([*run_cfg.cache.recompute, *evaluation]))}]"]
+    return out + ["cache.reuse=none"] * fresh
+
+
+def provenance(trials: list) -> dict[str, dict[str, str]]:
+    """Stage -> where its output came from in this run (the least trustworthy over the seeds) and its code digest."""
+    from gdwm.executor import COMPUTED, least_trusted
+
+    how: dict[str, list[str]] = {}
+    code: dict[str, str] = {}
+    for t in trials:
+        for name, r in t.results.items():
+            how.setdefault(name, []).append(COMPUTED if not r.cached else r.reused)
+            code[name] = t.trial.settings.get("code", {}).get(name, {}).get("digest", "")
+    out = {}
+    for name, values in how.items():
+        h = least_trusted(values)
+        out[name] = {"status": RECOMPUTED if h == COMPUTED else f"reused ({h})", "code": code[name]}
+    return out
+
+
+def _entry_keys(trials: list) -> dict[str, list[str]]:
+    from gdwm.runner import entry_keys
+
+    out: dict[str, set[str]] = {}
+    for t in trials:
+        for name, keys in entry_keys(t.results).items():
+            out.setdefault(name, set()).update(keys)
+    return {n: sorted(k) for n, k in out.items()}
+
+
+def baseline_flags(backend, base_id: str, now: dict[str, dict[str, str]]) -> list[str]:
+    """What makes the baseline a weaker reference: stages it reused from other (or unknown) code, or no record of
+    where its stages came from (recorded by an older gdwm)."""
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            path = backend.client.download_artifacts(base_id, PROVENANCE, tmp)
+            base = json.loads(Path(path).read_text())
+    except Exception:
+        return [f"baseline run {base_id[:12]} has no record of the code its stages ran (an older gdwm); re-record "
+                "it with --set-baseline --fresh"]  # fmt: skip
+    other = [n for n, p in base.items() if p.get("status") not in (RECOMPUTED, "reused (same code)")]
+    flags = []
+    if other:
+        flags.append(f"baseline run {base_id[:12]}: {', '.join(other)} came from other code than the baseline's "
+                     "(cache.reuse=all); re-record it with --set-baseline --fresh")  # fmt: skip
+    changed = [n for n in now if n in base and base[n].get("code") != now[n]["code"]]
+    if changed:
+        flags.append(f"code changed since the baseline: {', '.join(changed)} (recomputed here)")
+    return flags
+
+
+def print_provenance(stages: dict[str, dict[str, str]], flags: list[str]) -> None:
+    t = Table(title="stages", header_style="bold")
+    for col in ("stage", "output", "code"):
+        t.add_column(col)
+    for name, p in stages.items():
+        t.add_row(name, p["status"], p["code"][:12])
+    console.print(t)
+    for f in flags:
+        console.print(f"[yellow]{f}[/yellow]", markup=True)
 
 
 SAMPLES_DIR = "samples"

@@ -26,7 +26,7 @@ import signal
 import statistics
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,8 +39,27 @@ from gdwm.cache import Cache
 from gdwm.config import SweepConfig
 from gdwm.dag import Pipeline
 from gdwm.determinism import worker_env
-from gdwm.executor import StageFailed, StageResult, run_scene_stage, run_stage, stage_config, task_options
-from gdwm.plan import PlanError, PlanRow, Row, RunError, Trial, check_seed_overrides, compose, resolve_seeds
+from gdwm.executor import (
+    REUSED_SAME,
+    StageFailed,
+    StageResult,
+    run_scene_stage,
+    run_stage,
+    stage_config,
+    task_options,
+    verified,
+)
+from gdwm.plan import (
+    PlanError,
+    PlanRow,
+    Row,
+    RunError,
+    Trial,
+    check_seed_overrides,
+    compose,
+    print_reasons,
+    resolve_seeds,
+)
 from gdwm.progress import ProgressActor, render
 from gdwm.term import console
 from gdwm.tracking import AliveExcept, RunGuard, call, open_tracking, process_owner
@@ -300,6 +319,15 @@ def aggregate(per_seed: list[dict[str, float]]) -> dict[str, float]:
     return out
 
 
+CACHE_KEYS = "cache_keys.json"
+"""Artifact of trial (and regression) runs: ``{stage: [key, ...]}``, every cache entry their results came from
+(per-scene stages: each scene's), what ``gdwm cache gc`` keeps for runs it must not break."""
+
+
+def entry_keys(results: Mapping[str, StageResult]) -> dict[str, list[str]]:
+    return {n: sorted({k for k, _ in r.scenes.values()}) if r.scenes else [r.key] for n, r in results.items()}
+
+
 # ---- the driver loop -------------------------------------------------------------------------------------------
 def _root_cause(e: BaseException) -> BaseException:
     while isinstance(e, ray.exceptions.RayTaskError) and e.cause is not None and e.cause is not e:
@@ -452,6 +480,7 @@ def _finish_trial(sink, layout: Layout, t: Trial, outcomes: dict[str, Outcome]) 
         return res
     links = {f"gdwm.stage_run.{n}": r.run_id for n, r in res.results.items() if r.run_id}
     call(sink, "set_tags", t.run_id, links | {f"gdwm.stage_key.{n}": r.key for n, r in res.results.items()})
+    call(sink, "log_text", t.run_id, json.dumps(entry_keys(res.results), indent=1), CACHE_KEYS)
     res.metrics = report_evaluation(sink, t.run_id, t.pipe, res.results)
     if layout.sweep is not None:
         # the zoo versions this trial's stages registered carry its sweep, trial and key metrics
@@ -499,8 +528,8 @@ def run_pipeline(
         print_plan(trials)
         return LaunchSummary(naive=sum(len(t.order) for t in trials))
     cache = Cache(cfg.cache.uri)
-    if all(r.status == "cached" for t in trials for r in t.plan) and all(
-        cache.lookup(r.stage, r.key, verify=True) is not None for t in trials for r in t.plan
+    if all(r.status == "cached" and r.reused == REUSED_SAME for t in trials for r in t.plan) and all(
+        verified(cache, t.settings["checkpoint_root"], r.stage, r.key) for t in trials for r in t.plan
     ):
         # Nothing to run: no Ray, no tracking; a no-op re-run costs only the hash checks.
         n = len({(r.stage, r.key) for t in trials for r in t.plan})
@@ -543,9 +572,11 @@ def print_plan(trials: list[Trial]) -> None:
             status = "shared" if r.status == "to run" and (r.stage, r.key) in seen else r.status
             seen.add((r.stage, r.key))
             counts[status] += 1
-            t.add_row(*(str(trial.seed),) * several, r.stage, r.scene or "-", status, r.key[:12], desc)
+            shown = r.shown if status == r.status else status
+            t.add_row(*(str(trial.seed),) * several, r.stage, r.scene or "-", shown, r.key[:12], desc)
     console.print(t)
     console.print(", ".join(f"{n} {s}" for s, n in counts.items() if n or s != "shared"))
+    print_reasons(trials)
 
 
 def _print_run_summaries(summary: LaunchSummary, progress) -> None:
@@ -559,7 +590,7 @@ def _print_run_summaries(summary: LaunchSummary, progress) -> None:
         for name in res.trial.order:
             r = res.results.get(name)
             if r is not None:
-                status = "cached" if r.cached else "done"
+                status = "done" if not r.cached else "cached" if r.reused == REUSED_SAME else f"cached ({r.reused})"
                 if r.failed:
                     status += f" ({len(r.failed)} scene(s) skipped)"
             else:

@@ -1,7 +1,7 @@
 """The stage API: the one part of gdwm that ``pipelines`` imports.
 
 A stage is a named, versioned function of (its config subtrees, its upstream outputs, the
-data fingerprint) to an output directory (DESIGN §4)::
+data fingerprint, its code) to an output directory (see ``gdwm.cache`` and ``gdwm.fingerprint``)::
 
     @stage("distill", version="1", config=["stage.distill", "model.encoder"], upstream=["reconstruct"],
            per_scene=True, resources="gpu", setup=load_encoder)
@@ -54,6 +54,9 @@ class StageDef:
     strata: str | None = None
     """A column of ``samples`` (e.g. ``task``) whose groups a bootstrap resamples separately, each at its own size,
     so a suite of per-group metrics stays defined on every resample."""
+    libraries: tuple[str, ...] = ()
+    """Distributions whose version enters the stage's code fingerprint besides those it imports from
+    ``gdwm.fingerprint.NUMERIC_LIBRARIES`` (e.g. a renderer it loads by name)."""
 
     def __post_init__(self) -> None:
         if self.resources not in RESOURCE_CLASSES:
@@ -93,12 +96,16 @@ def stage(
     samples: str | None = None,
     score: Callable[[Any, Any], Mapping[str, float]] | None = None,
     strata: str | None = None,
+    libraries: Sequence[str] = (),
 ) -> Callable[[Callable[[StageContext], Any]], StageDef]:
-    """Declare a stage; the decorated name becomes its StageDef (point ``_target_`` at it)."""
+    """Declare a stage; the decorated name becomes its StageDef (point ``_target_`` at it).
+
+    Its cache key holds ``version`` and a fingerprint of its code (``gdwm.fingerprint``): bump ``version`` only for
+    what the fingerprint can't see, such as a data file the stage reads at run time."""
 
     def wrap(fn: Callable[[StageContext], Any]) -> StageDef:
         sd = StageDef(name, str(version), fn, tuple(config), tuple(upstream), per_scene, resources, setup, evaluation,
-                      seeded, samples, score, strata)  # fmt: skip
+                      seeded, samples, score, strata, tuple(libraries))  # fmt: skip
         _REGISTRY[(fn.__module__, fn.__name__)] = sd
         return sd
 

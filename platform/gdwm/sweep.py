@@ -16,7 +16,16 @@ from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
 from gdwm.config import SweepConfig, load_config
-from gdwm.plan import PlanError, Trial, check_grid_seeds, check_seed_overrides, compose, expand, resolve_seeds
+from gdwm.plan import (
+    PlanError,
+    Trial,
+    check_grid_seeds,
+    check_seed_overrides,
+    compose,
+    expand,
+    print_reasons,
+    resolve_seeds,
+)
 from gdwm.runner import LaunchSummary, Layout, launch
 from gdwm.term import console
 
@@ -97,19 +106,23 @@ def print_sweep_plan(sweep: SweepConfig, trials: list[Trial], durations: dict[st
                 cells.append("")
                 continue
             k = (s, t.keys[s])
-            cached = all(r.status == "cached" for r in t.plan if r.stage == s)
+            rows = [r for r in t.plan if r.stage == s]
+            cached = all(r.status == "cached" for r in rows)
             state = "cached" if cached else "shared" if k in claimed else "to run"
+            old = cached and any(r.shown != "cached" for r in rows)  # reused from other or unknown code
             if state == "to run":
                 seconds += durations.get(s, float("nan"))
             claimed.add(k)
             counts[state] += 1
-            cells.append({"cached": "[dim]cached[/dim]", "shared": "[cyan]shared[/cyan]", "to run": "run"}[state])
+            shown = {"cached": "[dim]cached[/dim]", "shared": "[cyan]shared[/cyan]", "to run": "run"}[state]
+            cells.append("[yellow]cached (old code)[/yellow]" if old else shown)
         table.add_row(t.name, *cells)
     console.print(table)
     est = f"~{seconds / 60:.0f} min of stage time (medians of earlier runs)" if seconds == seconds else (
         "no duration estimate (no earlier runs of some stages in this store)")  # fmt: skip
     console.print(f"{counts['to run']} stage executions to run, {counts['shared']} shared, {counts['cached']} "
                   f"cached; {est}")  # fmt: skip
+    print_reasons(trials)
     return counts
 
 

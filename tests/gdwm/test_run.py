@@ -255,6 +255,8 @@ def test_killed_scene_worker_is_retried_and_outputs_match(first_run, tmp_path):
         assert mine is not None and mine.files == m.files, (m.stage, m.scene)
 
 
+# make test-all: tests/gdwm/test_checkpoints.py covers the resume rule in process and through the CLI
+@pytest.mark.slow
 def test_killed_train_worker_resumes_from_last_checkpoint(tmp_path):
     toy = Toy(tmp_path)
     r = toy.run("targets=[tokenizer]", "cluster.resources.train.num_workers=1", GDWM_TEST_KILL="tokenizer:step=1")

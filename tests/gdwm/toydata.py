@@ -9,8 +9,9 @@ import numpy as np
 from pipelines.data.layout import DatasetWriter, flat_pose
 
 
-def make_dataset(root: Path, scenes: int = 3) -> Path:
-    with DatasetWriter(root, name="toy", source="test") as w:
+def make_dataset(root: Path, scenes: int = 3, params: dict | None = None) -> Path:
+    """``params``: what dataset.json records as built from (a run must request the same ``data.<key>``)."""
+    with DatasetWriter(root, name="toy", source="test", params=params) as w:
         for i in range(scenes):
             sid = f"scene-{i:04d}"
             w.add(

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -32,3 +36,33 @@ def synth_small_cfg() -> SynthConfig:
 @pytest.fixture(scope="session")
 def synth_small(synth_small_cfg, tmp_path_factory) -> Path:
     return build(synth_small_cfg, tmp_path_factory.mktemp("synth") / "small")
+
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def gdwm_cli(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
+    """One ``gdwm`` command in its own process (test configs on GDWM_CONF_PATH); it must exit 0."""
+    env = {**os.environ, "GDWM_CONF_PATH": str(REPO / "tests" / "conf")}
+    r = subprocess.run([sys.executable, "-m", "gdwm", *args], capture_output=True, text=True, timeout=timeout, env=env)
+    assert r.returncode == 0, r.stderr[-4000:]
+    return r
+
+
+@dataclass(frozen=True)
+class TinyRun:
+    work: Path
+    data: Path
+    args: list[str]
+    """The command's overrides (workdir, data root, TINY_RUN)."""
+    stdout: str
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory) -> TinyRun:
+    """The real understanding branch once from scratch (data generated first): what the end-to-end test inspects and
+    the determinism test repeats. Tests that run more commands in its workdir come after the ones that read it."""
+    work = tmp_path_factory.mktemp("tiny") / "w"
+    args = [f"workdir={work}", f"data.root={work / 'data'}", *TINY_RUN]
+    r = gdwm_cli("run", *args)
+    return TinyRun(work, work / "data", args, r.stdout)

@@ -4,24 +4,15 @@ a sweep running side by side (the real stages, tiny flavors, local Ray on 2 CPUs
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from gdwm.cache import Cache
 from tests.pipelines.conftest import TINY_RUN as TINY
+from tests.pipelines.conftest import gdwm_cli as _gdwm
 
 REPO = Path(__file__).resolve().parents[2]
-
-
-def _gdwm(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
-    env = {**os.environ, "GDWM_CONF_PATH": str(REPO / "tests" / "conf")}
-    r = subprocess.run([sys.executable, "-m", "gdwm", *args], capture_output=True, text=True, timeout=timeout, env=env)
-    assert r.returncode == 0, r.stderr[-4000:]
-    return r
 
 
 def _evaluation(work: Path) -> dict[str, tuple[bytes, dict]]:
@@ -42,14 +33,13 @@ def _files(work: Path) -> dict[tuple[str, str | None, str], dict[str, str]]:
 
 
 @pytest.fixture(scope="module")
-def twice(tmp_path_factory) -> tuple[Path, dict, dict, dict, dict]:
-    root = tmp_path_factory.mktemp("det")
-    data = root / "data"
-    runs = []
-    for name in ("a", "b"):
-        _gdwm("run", f"workdir={root / name}", f"data.root={data}", *TINY)
-        runs.append((_evaluation(root / name), _files(root / name)))
-    return data, runs[0][0], runs[1][0], runs[0][1], runs[1][1]
+def twice(tiny_run, tmp_path_factory) -> tuple[Path, dict, dict, dict, dict]:
+    """The shared tiny run, and the same command from scratch in a second workdir (same data)."""
+    other = tmp_path_factory.mktemp("det") / "b"
+    runs = [(_evaluation(tiny_run.work), _files(tiny_run.work))]
+    _gdwm("run", f"workdir={other}", f"data.root={tiny_run.data}", *TINY)
+    runs.append((_evaluation(other), _files(other)))
+    return tiny_run.data, runs[0][0], runs[1][0], runs[0][1], runs[1][1]
 
 
 def test_two_runs_from_scratch_give_the_same_bytes(twice):

@@ -12,22 +12,13 @@ import pyarrow.parquet as pq
 import pytest
 
 from gdwm.cache import Cache
-from tests.pipelines.conftest import TINY_RUN
 
 
-def test_gdwm_run_reconstruct_distill_tokenizer_lora_evaluate_qa(tmp_path):
-    args = [
-        sys.executable,
-        "-m",
-        "gdwm",
-        "run",
-        f"workdir={tmp_path}",
-        *TINY_RUN,
-    ]
-    r = subprocess.run(args, capture_output=True, text=True, timeout=900)
-    assert r.returncode == 0, r.stderr[-4000:]
-    assert "generating synthetic_mini" in r.stdout  # the data was absent and made first
-    assert "QA per task family" in r.stdout and "on disk" in r.stdout  # and its summary printed
+def test_gdwm_run_reconstruct_distill_tokenizer_lora_evaluate_qa(tiny_run):
+    tmp_path = tiny_run.work  # the run of TINY_RUN from scratch (shared with test_determinism, which only reads it)
+    args = [sys.executable, "-m", "gdwm", "run", *tiny_run.args]
+    assert "generating synthetic_mini" in tiny_run.stdout  # the data was absent and made first
+    assert "QA per task family" in tiny_run.stdout and "on disk" in tiny_run.stdout  # and its summary printed
     cache = Cache(tmp_path / "cache")
     rec, dis = cache.entries("reconstruct"), cache.entries("distill")
     assert sorted(m.scene for m in rec) == ["scene-0000", "scene-0001"] == sorted(m.scene for m in dis)

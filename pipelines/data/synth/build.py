@@ -23,6 +23,7 @@ import numpy as np
 from pipelines.data.layout import (
     DataError,
     DatasetWriter,
+    content_params,
     depth_relpath,
     flat_pose,
     image_relpath,
@@ -249,7 +250,8 @@ def build(cfg: Any, root: str | Path, source: str | None = None, overwrite: bool
     t0 = time.perf_counter()
     scenarios = []
     workers = min(cfg.num_scenes, cfg.num_workers or _usable_cpus())
-    with DatasetWriter(root, name=cfg.name, source=SOURCE, overwrite=overwrite) as w:
+    params = content_params(cfg, SynthConfig, skip=("num_workers",))  # every byte follows from these
+    with DatasetWriter(root, name=cfg.name, source=SOURCE, overwrite=overwrite, params=params) as w:
         assert w.tmp is not None
         jobs = [
             (cfg, i, w.tmp, "val" if i >= cfg.num_scenes - n_val else "train", horizon) for i in range(cfg.num_scenes)
