@@ -56,7 +56,8 @@ def run(quick: bool = False) -> list[Result]:
     detail = f"{len(fps)} stages of experiment=demo, {files} first-party modules, median of {repeats}"
     return [
         Result("fingerprint", "cold (parse every module)", t_cold * 1e3, "ms", detail=detail),
-        Result("fingerprint", "warm (new launch, per-file cache on disk)", t_warm * 1e3, "ms", TARGET_WARM_MS, "<=",
-               detail),  # fmt: skip
+        Result(
+            "fingerprint", "warm (new launch, per-file cache on disk)", t_warm * 1e3, "ms", TARGET_WARM_MS, "<=", detail
+        ),
         Result("fingerprint", "memoised (later trials of a launch)", t_memo * 1e3, "ms", detail=detail),
     ]

@@ -1,6 +1,6 @@
 """``encoder/daisy``: dense DAISY descriptors (OpenCV contrib) projected to ``d_f`` -- the CPU foundation encoder.
 
-DESIGN §9: on CPU, E_F is a real, frozen, deterministic dense descriptor. DAISY is computed on the grayscale image
+On CPU, E_F is a real, frozen, deterministic dense descriptor. DAISY is computed on the grayscale image
 at keypoints every ``step`` px (rows/columns ``0, step, 2*step, ...``), a constant "flatness" channel is appended
 (so textureless patches get a defined direction instead of a zero vector), the ``[h, w, D + 1]`` map is multiplied
 by a fixed random orthogonal matrix drawn from ``seed`` (data-independent, unlike PCA), upsampled bilinearly to

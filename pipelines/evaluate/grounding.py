@@ -1,4 +1,4 @@
-"""2D and 3D visual grounding metrics, 0–100 (DESIGN §11; no official public code, so approximate).
+"""2D and 3D visual grounding metrics, 0–100 (no official public code, so approximate).
 
 Every sample has one ground-truth object and at most one predicted one (the first box or centre in the answer).
 A prediction that does not parse is no prediction: a miss that lowers recall, never a false positive. So, at one

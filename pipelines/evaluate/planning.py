@@ -1,4 +1,4 @@
-"""Decision accuracy (planning / classification) and regression MAE (DESIGN §11; approximate).
+"""Decision accuracy (planning / classification) and regression MAE (approximate).
 
 A decision is the answer's text before its first "." ("Turn left. Reason: ..." -> "turn left"), lowercased with
 whitespace collapsed; a prediction without one, or outside the label set when one is given, is malformed: counted

@@ -1,4 +1,4 @@
-"""The understanding suites (NuInteract, NuInstruct, OmniDrive) of a table of predictions, named as DESIGN §11.
+"""The understanding suites (NuInteract, NuInstruct, OmniDrive) of a table of predictions, named as in README: Stages.
 
 Rows are dicts (or a pyarrow Table) with ``task``, ``category``, ``answer`` (reference) and ``prediction``; their
 order is the ranking of grounding answers for mAP. Which rows feed which metric is a ``SuiteMapping``. No official
@@ -94,7 +94,7 @@ class SuiteMapping:
 @dataclass
 class SuiteResult:
     metrics: dict[str, float] = field(default_factory=dict)
-    """By DESIGN §11 name; a metric without samples is absent (never 0)."""
+    """By metric name (README: Stages); a metric without samples is absent (never 0)."""
     counts: dict[str, int] = field(default_factory=dict)
     """Samples scored per group (``nuinteract/vg2d``), with ``malformed/<group>`` (unparsed predictions, scored as
     misses) and ``bad_answer/<group>`` (unparsed references, skipped) for the parsed groups."""

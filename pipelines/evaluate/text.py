@@ -1,4 +1,4 @@
-"""Caption metrics: BLEU-4, ROUGE-L and CIDEr by pycocoevalcap's scorers, x100 (DESIGN §11)."""
+"""Caption metrics: BLEU-4, ROUGE-L and CIDEr by pycocoevalcap's scorers, x100."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Fréchet distances between generated and real views, named by what computed them (DESIGN §9).
+"""Fréchet distances between generated and real views, named by what computed them.
 
 - ``fid``: only with the standard Inception weights, a TorchScript file from a local path (the torchmetrics /
   pytorch-fid ``pt_inception-2015-12-05`` export taking [0, 255] images and returning 2048-d pool features).

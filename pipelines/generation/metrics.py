@@ -1,4 +1,4 @@
-"""Scores of generated RGB-D views against ground truth, per target family (DESIGN §11 names).
+"""Scores of generated RGB-D views against ground truth, per target family (names as in README: Stages).
 
 ``gen/<target>/psnr`` and ``ssim`` on RGB in [0, 1] at the model's resolution; ``depth_absrel`` = mean |d - d*| / d*
 and ``depth_rmse`` (metres) over pixels with ground-truth depth in (0, max_depth]. Protocol ``approximate``: computed

@@ -1,4 +1,4 @@
-"""evaluate_qa and evaluate_gen: the benchmark numbers of a trial (DESIGN §11).
+"""evaluate_qa and evaluate_gen: the benchmark numbers of a trial.
 
 ``evaluate_qa`` answers the held-out QA with the LoRA'd world model in batches on a pool of Ray actors (each loads
 the model once; fractional GPUs on the cluster, ``cluster.resources.eval``), scores the answers with every

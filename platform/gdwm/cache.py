@@ -1,4 +1,4 @@
-"""Content-addressed stage cache (DESIGN §4): a stage's output directory, keyed by the sha256 of its inputs.
+"""Content-addressed stage cache: a stage's output directory, keyed by the sha256 of its inputs.
 
 Layout under the cache root (any ``pyarrow.fs`` URI, or a plain local path)::
 

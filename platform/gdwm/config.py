@@ -89,7 +89,7 @@ class ReuseMode(StrEnum):
 
 @dataclass
 class CacheConfig:
-    """Content-addressed stage cache (DESIGN §4)."""
+    """Content-addressed stage cache; see ``gdwm.cache`` and ``gdwm.fingerprint``."""
 
     uri: str = "${abspath:${workdir}}/cache"
     """A pyarrow.fs URI or local path: file:///..., s3://bucket/prefix, gs://..."""

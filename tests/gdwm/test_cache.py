@@ -1,4 +1,4 @@
-"""DESIGN §4: content keys, atomic publish with a manifest written last, verified lookups."""
+"""The stage cache: content keys, atomic publish with a manifest written last, verified lookups."""
 
 from __future__ import annotations
 

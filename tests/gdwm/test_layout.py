@@ -1,4 +1,4 @@
-"""DESIGN §2: ``platform/`` holds the gdwm package without being a package itself."""
+"""Layout (README): ``platform/`` holds the gdwm package without being a package itself."""
 
 import subprocess
 import sys

@@ -1,4 +1,4 @@
-"""DESIGN §6: MLflow tracking — one writer for sqlite, batches within MLflow's limits, no run left RUNNING."""
+"""MLflow tracking — one writer for sqlite, batches within MLflow's limits, no run left RUNNING."""
 
 import contextlib
 import dataclasses

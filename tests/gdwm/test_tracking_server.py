@@ -1,4 +1,4 @@
-"""``tracking=server`` against a real ``mlflow server --app-name basic-auth`` on loopback (DESIGN §6).
+"""``tracking=server`` against a real ``mlflow server --app-name basic-auth`` on loopback.
 
 The server gets its admin password from ``MLFLOW_AUTH_ADMIN_PASSWORD`` (MLflow ships none) and gives every
 user READ by default; gdwm takes the URI and credentials from ``MLFLOW_TRACKING_URI/USERNAME/PASSWORD``.

@@ -1,4 +1,4 @@
-"""``synthetic_mini``: procedural driving scenes in the NuScenes-GSQA layout (DESIGN §8).
+"""``synthetic_mini``: procedural driving scenes in the NuScenes-GSQA layout (``pipelines/data/layout.py``).
 
 ``pipelines.data.synth.build.build(SynthConfig(), root)`` renders seeded scenes (road, lanes,
 vehicles, pedestrians, buildings, trees) for 6 surround cameras in several weathers, with depth,

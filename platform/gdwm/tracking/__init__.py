@@ -1,4 +1,4 @@
-"""MLflow tracking (DESIGN §6): one backend class talks to MLflow; with sqlite it lives in one Ray actor,
+"""MLflow tracking: one backend class talks to MLflow; with sqlite it lives in one Ray actor,
 the single writer; stages log through a ``Tracker`` bound to their run; ``RunGuard`` and ``reconcile``
 make sure no run is left RUNNING."""
 
