@@ -204,6 +204,7 @@ def compose(
 
     Without ``overrides`` (a caller holding a composed config only), ``cfg`` is every trial's config, so its seed
     must be the only seed. Errors name ``where`` (and the row, with ``name_rows``)."""
+    seen: dict[str, _Entries] = {}  # a cache's entries are read once per launch, whatever the number of trials
     for t in trials:
         here = f"{where} row '{t.label}'" if name_rows else where
         if overrides is None:
@@ -226,7 +227,8 @@ def compose(
             raise PlanError(f"{here}: {e}") from e
         t.settings = env_settings(t.cfg, ensure_data(t.cfg))
         t.settings |= code_settings(t.cfg, t.pipe, t.order, here)
-        t.plan, t.keys = plan_keys(t.pipe, t.order, t.cfg, t.env())
+        entries = seen.setdefault(t.settings["cache_uri"], _Entries(Cache(t.settings["cache_uri"])))
+        t.plan, t.keys = plan_keys(t.pipe, t.order, t.cfg, t.env(), entries)
 
 
 _WARNED: set[str] = set()
@@ -413,11 +415,12 @@ def _plan_result(sd, sub, env: RunEnv, ups: tuple[StageResult, ...], cache: Cach
     return StageResult(sd.name, keys[None], how[None] != COMPUTED, None, base=bases[None], reused=how[None])
 
 
-def plan_keys(pipe: Pipeline, order: list[str], cfg: DictConfig, env: RunEnv) -> tuple[list[PlanRow], dict[str, str]]:
+def plan_keys(pipe: Pipeline, order: list[str], cfg: DictConfig, env: RunEnv, entries: _Entries | None = None
+              ) -> tuple[list[PlanRow], dict[str, str]]:  # fmt: skip
     """Keys depend on upstream keys, not outputs, so the whole DAG's keys are known before anything runs: the plan's
     rows, and each stage's key as its downstream sees it (per-scene stages: the aggregate key)."""
     cache = Cache(env.cache_uri)
-    entries = _Entries(cache)
+    entries = entries or _Entries(cache)
     rows: list[PlanRow] = []
     predicted: dict[str, StageResult] = {}
     for name in order:
