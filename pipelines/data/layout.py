@@ -322,12 +322,9 @@ def decode_depth(raw: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- fingerprint
 
 
-def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
+def file_sha256(path: Path) -> str:
     with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def _files_under(root: Path) -> list[str]:

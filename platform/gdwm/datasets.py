@@ -89,12 +89,9 @@ def _stat_tree(root: Path) -> dict[str, tuple[int, int]]:
     return out
 
 
-def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
+def file_sha256(path: Path) -> str:
     with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def _in_order(relpaths) -> list[str]:
