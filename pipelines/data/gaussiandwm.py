@@ -16,6 +16,9 @@ name the frame. Several files of one frame (e.g. one per view) are merged into i
 Scene ids are ``scene_<idx:04d>`` (the release's numbering, not nuScenes scene names); frames are
 renumbered 0..F-1 per scene in original order, the original index kept in ``frames.token``.
 
+Every path the release or the options name (``gauss_paths``, ``gauss_root``, glob matches, pose files) must resolve,
+symlinks followed, inside ``source=``; one that leads out (``..``, absolute, a symlink) is refused, naming it.
+
 The release has no images, cameras, LiDAR, boxes or timestamps: those tables stay empty (or null),
 ``dataset.json`` says so, and ``qa.image`` keeps the release's own image paths.
 """
@@ -37,6 +40,7 @@ from pipelines.data.gaussiandwm_qa import DEFAULT_TASK_MAP, ReleaseRecord, map_t
 from pipelines.data.layout import (
     DataError,
     DatasetWriter,
+    contained,
     content_params,
     flat_pose,
     gaussians_relpath,
@@ -226,8 +230,10 @@ def _read_records(src: Path, cfg: ReleaseConfig) -> list[ReleaseRecord]:
         raise DataError(f"source={src}: no QA files match qa_glob={cfg.qa_glob!r}")
     records: list[ReleaseRecord] = []
     seen: dict[str, str] = {}
-    for path in files:
-        for r in read_qa_file(path, path.relative_to(src).as_posix(), cfg.insert_gauss_token):
+    for found in files:
+        rel = found.relative_to(src).as_posix()
+        path = contained(src, rel, "QA file")
+        for r in read_qa_file(path, rel, cfg.insert_gauss_token):
             if r.sample_uid in seen:
                 raise DataError(f"{r.where}: sample_uid '{r.sample_uid}' already used at {seen[r.sample_uid]}")
             seen[r.sample_uid] = r.where
@@ -244,9 +250,9 @@ def _collect_frames(src: Path, cfg: ReleaseConfig, records: list[ReleaseRecord])
         # A record's frame exists even when it has no Gaussians.
         frame = frames[key].setdefault(r.frame_idx, _Frame(r.frame_idx))
         for p in r.gauss_paths:
-            path = (src / cfg.gauss_root / p).resolve()
+            where = f"{r.where} sample '{r.sample_uid}'"
+            path = contained(src, Path(cfg.gauss_root, p), f"{where}: gauss path")
             if not path.is_file():
-                where = f"{r.where} sample '{r.sample_uid}'"
                 raise DataError(f"{where}: gauss path {p} not found under {src / cfg.gauss_root}")
             prev = owner.setdefault(path, (key, r.frame_idx, r.where))
             if prev[:2] != (key, r.frame_idx):
@@ -256,7 +262,8 @@ def _collect_frames(src: Path, cfg: ReleaseConfig, records: list[ReleaseRecord])
                 )
             frame.files.add(path)
     for found in sorted(src.glob(cfg.gauss_glob)):
-        path, rel = found.resolve(), found.relative_to(src)
+        rel = found.relative_to(src)
+        path = contained(src, rel, "Gaussian file")
         if path in owner:
             continue
         ids = ids_from_path(rel)
@@ -272,7 +279,8 @@ def _collect_frames(src: Path, cfg: ReleaseConfig, records: list[ReleaseRecord])
 
 
 def _scene_poses(src: Path, cfg: ReleaseConfig, scene_key: int | str) -> list[np.ndarray]:
-    path = src / cfg.pose_dir / cfg.pose_template.format(scene_idx=scene_key, scene_id=scene_key)
+    rel = Path(cfg.pose_dir, cfg.pose_template.format(scene_idx=scene_key, scene_id=scene_key))
+    path = contained(src, rel, f"{scene_id(scene_key)}: pose file")
     return read_pose_file(path, scene_id(scene_key))
 
 

@@ -73,6 +73,17 @@ class DataError(ValueError):
     """Bad or missing data; the message names the file, scene, frame, camera or field."""
 
 
+def contained(root: Path, rel: str | Path, what: str) -> Path:
+    """``root / rel`` resolved (symlinks followed; it need not exist). Outside ``root`` (a ``..``, an absolute path or
+    a symlink leading out) it is a DataError ``"<what> <rel> leads outside <root> ..."``. Every path that a source's
+    records, options or globs name is read only through this."""
+    base = Path(root).resolve()
+    path = (base / rel).resolve()
+    if not path.is_relative_to(base):
+        raise DataError(f"{what} {rel} leads outside {base} (to {path}); refusing to read it")
+    return path
+
+
 def _fsl(n: int) -> pa.DataType:
     return pa.list_(pa.float32(), n)
 

@@ -3,13 +3,24 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
+
+
+class Encoder(StrEnum):
+    daisy = "daisy"
+    qwen3_vl_vision = "qwen3_vl_vision"
+
+
+class FeatureTokenizer(StrEnum):
+    foundation = "foundation"
+    langsplat3 = "langsplat3"
 
 
 @dataclass
 class DistillConfig:
     """E_F frozen; E_z / D_F fitted with L_ae; per-Gaussian codes z_i optimised with L_distill."""
 
-    encoder: str = "daisy"
+    encoder: Encoder = Encoder.daisy
     """Foundation encoder variant: ``daisy`` (CPU) or ``qwen3_vl_vision`` (a local Qwen3-VL checkpoint)."""
     encoder_path: str | None = None
     """Local checkpoint directory of ``qwen3_vl_vision``."""
@@ -17,7 +28,7 @@ class DistillConfig:
     """Use the encoder's tiny random flavor (tests, smoke runs)."""
     d_f: int = 64
     """Feature dimension of ``daisy`` (the Qwen encoder's is fixed by its checkpoint)."""
-    feature_tokenizer: str = "foundation"
+    feature_tokenizer: FeatureTokenizer = FeatureTokenizer.foundation
     """Compact code variant: ``foundation`` (``d_z`` dims) or ``langsplat3`` (3 dims, like the public release)."""
     d_z: int = 16
     """Code dimension of ``foundation``."""

@@ -3,8 +3,20 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 
-FUTURE_POSES = ("recorded", "predicted")
+
+class FuturePoses(StrEnum):
+    recorded = "recorded"
+    predicted = "predicted"
+
+
+class FdExtractor(StrEnum):
+    daisy = "daisy"
+    inception = "inception"
+
+
+FUTURE_POSES = tuple(p.value for p in FuturePoses)
 
 
 @dataclass
@@ -34,7 +46,7 @@ class EvaluateGenConfig:
     """Lateral shifts, metres (+ = left); ground truth is re-rendered (synthetic data only)."""
     horizons_s: list[float] = field(default_factory=lambda: [1.0, 2.0])
     """Future horizons, seconds ahead."""
-    future_poses: str = "recorded"
+    future_poses: FuturePoses = FuturePoses.recorded
     """Where future targets' camera poses come from: ``recorded`` (the dataset's ego poses, i.e. the trajectory
     QA) or ``predicted`` (the LoRA'd LLM answers the trajectory question from the 4 history frames; scored as
     ``future_pred_<s>s`` against what the camera recorded)."""
@@ -42,8 +54,10 @@ class EvaluateGenConfig:
     """Frames per held-out scene that are scored (the first N)."""
     batch_size: int = 8
     """Views per sampling call."""
-    fd_extractor: str = "daisy"
+    fd_extractor: FdExtractor = FdExtractor.daisy
     """Features of the Fréchet distance: ``daisy`` (``fd_daisy``, approximate) or ``inception`` (FID, needs
     ``fd_weights``)."""
     fd_weights: str | None = None
-    """Local TorchScript file of the standard Inception weights (``fd_extractor: inception``); never downloaded."""
+    """Local TorchScript file of the standard Inception weights (``fd_extractor: inception``); never downloaded.
+    Trusted input: ``torch.jit.load`` runs the file's TorchScript code (there is no weights-only TorchScript load), so
+    point it only at a file your team exported or checked (e.g. by its published sha256), never at a user upload."""

@@ -65,7 +65,7 @@ def inception_extractor(path: str | Path) -> Extractor:
             f"FID needs the standard Inception weights as a TorchScript file; {path} does not exist "
             "(export pt_inception-2015-12-05 to TorchScript and pass its local path)"
         )
-    net = torch.jit.load(str(path), map_location="cpu").eval()
+    net = torch.jit.load(str(path), map_location="cpu").eval()  # runs its code: an operator-vetted file only
 
     @torch.no_grad()
     def run(images: torch.Tensor) -> np.ndarray:
@@ -109,7 +109,7 @@ def fvd_extractor(path: str | Path | None) -> Extractor:
         raise FileNotFoundError(
             f"FVD needs an I3D TorchScript file from a local path; got {path!r} (FVD is not computed without it)"
         )
-    net = torch.jit.load(str(path), map_location="cpu").eval()
+    net = torch.jit.load(str(path), map_location="cpu").eval()  # runs its code: an operator-vetted file only
 
     @torch.no_grad()
     def run(videos_NT3HW: torch.Tensor) -> np.ndarray:

@@ -3,6 +3,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
+
+
+class Backend(StrEnum):
+    auto = "auto"
+    torch = "torch"
+    gsplat = "gsplat"
 
 
 @dataclass
@@ -58,5 +65,5 @@ class ReconstructConfig:
     """Fixed background RGB; null learns one colour per scene."""
     seed: int = 0
     """Seed of view order and initialisation."""
-    backend: str = "auto"
-    """Rasterizer backend: auto, torch, gsplat."""
+    backend: Backend = Backend.auto
+    """Rasterizer backend: ``auto`` (gsplat on CUDA when it imports, else torch), ``torch`` or ``gsplat``."""

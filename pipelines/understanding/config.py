@@ -7,6 +7,12 @@ The components' own configs (selector, projection, fine adapter, alignment, LLM)
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
+
+
+class LoraMode(StrEnum):
+    train = "train"
+    zero_shot = "zero_shot"
 
 
 @dataclass
@@ -64,7 +70,7 @@ class TokenizerStageConfig(TrainConfig):
 class LoraStageConfig(TrainConfig):
     """Stage 2: peft LoRA on the LLM with the adapter trainable."""
 
-    mode: str = "train"
+    mode: LoraMode = LoraMode.train
     """``train``, or ``zero_shot``: no training at all and no Gaussian tokens (the conference table's first row)."""
     rank: int = 8
     """LoRA rank r."""

@@ -252,15 +252,17 @@ class Cache:
         with contextlib.suppress(FileNotFoundError):
             self.fs.delete_dir(trash)
 
-    def lookup(self, stage: str, key: str, verify: bool = True) -> Manifest | None:
-        """The entry's manifest, or None when absent; a bad entry is reported, moved aside and treated as absent."""
+    def lookup(self, stage: str, key: str, verify: bool = True, use: bool = True) -> Manifest | None:
+        """The entry's manifest, or None when absent; a bad entry is reported, moved aside and treated as absent.
+        ``verify``: re-hash its files (else only the manifest is checked); ``use``: a hit records its last use (a
+        plan's lookups don't)."""
         self.last_invalid = []
         d = self._dir(stage, key)
         m, bad = self._load(stage, key, d)
         if m is not None and verify:
             bad = self._verify(m, d)
         if bad is None:
-            if m is not None and verify:  # a use; an unverified lookup only plans
+            if m is not None and use:
                 self.touch(stage, key)
             return m
         self.last_invalid.append((stage, key, bad))
@@ -378,7 +380,7 @@ class Cache:
             with self.fs.open_output_stream(f"{d}/{m.key}") as f:
                 f.write(b"")
 
-    def lookup_base(self, stage: str, base: str, verify: bool = True) -> Manifest | None:
+    def lookup_base(self, stage: str, base: str, verify: bool = True, use: bool = True) -> Manifest | None:
         """The newest complete entry of the code-free key ``base``: any code's (an entry written before code was part
         of the key has key == base). Index files of entries gone (gc, invalidate) are dropped."""
         d = self._base_dir(stage, base)
@@ -393,7 +395,7 @@ class Cache:
                 with contextlib.suppress(OSError):
                     self.fs.delete_file(f"{d}/{key}")
         for m in sorted(found, key=lambda m: m.created_at, reverse=True):
-            if (hit := self.lookup(stage, m.key, verify)) is not None:
+            if (hit := self.lookup(stage, m.key, verify, use)) is not None:
                 return hit
         return None
 

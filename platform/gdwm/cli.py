@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
 from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config
+from gdwm.redact import redact, redact_config
 from gdwm.term import console, err_console, print_dataset_summary
 
 
@@ -78,9 +79,15 @@ def _run(cfg: DictConfig, args: list[str]) -> int:
 def _status(cfg: DictConfig, _args: list[str]) -> int:
     from gdwm.tracking import TrackingBackend
 
-    backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
+    uri = cfg.tracking.uri
+    if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).is_file():
+        # reading must not create a workdir and an empty store where nothing has run
+        err_console.print(f"no MLflow store at {uri.removeprefix('sqlite:///')}: nothing has run in workdir "
+                          f"{cfg.workdir} (or tracking.uri points elsewhere)", markup=False)  # fmt: skip
+        return 1
+    backend = TrackingBackend(uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
     runs = backend.search_runs("", max_results=30, order_by=["attributes.start_time DESC"])
-    t = Table(title=f"recent runs in {cfg.tracking.uri}", header_style="bold")
+    t = Table(title=f"recent runs in {redact(cfg.tracking.uri)}", header_style="bold")
     for col in ("run id", "name", "kind", "stage", "status", "started", "cache key"):
         t.add_column(col)
     for r in runs:
@@ -212,7 +219,8 @@ def _cache(sub: str) -> Callable[[DictConfig, list[str]], int]:
 
 
 def _config_show(cfg: DictConfig, _args: list[str]) -> int:
-    console.print(OmegaConf.to_yaml(cfg), end="", markup=False)
+    shown = redact_config(OmegaConf.to_container(cfg, resolve=False))  # credentials in URIs masked
+    console.print(OmegaConf.to_yaml(shown), end="", markup=False)
     return 0
 
 

@@ -94,7 +94,8 @@ class CacheConfig:
     uri: str = "${abspath:${workdir}}/cache"
     """A pyarrow.fs URI or local path: file:///..., s3://bucket/prefix, gs://..."""
     verify: bool = True
-    """Verify sha256 of every file on lookup (a corrupted entry is reported and recomputed)."""
+    """Re-hash every file of an entry when a run uses it (a corrupted entry is reported and recomputed, with its
+    training checkpoints); false trusts a complete manifest (faster on big entries, blind to bit rot)."""
     reuse: ReuseMode = ReuseMode.same_code
     """Which entries count as a hit. ``same_code``: only one computed by the same code and libraries (the key holds
     their fingerprint); ``all``: else the newest entry of the same config, version and data under any code (old
@@ -120,11 +121,16 @@ class CacheArgs:
     looked it up can still read it."""
 
 
+class SceneErrorPolicy(StrEnum):
+    fail = "fail"
+    skip = "skip"
+
+
 @dataclass
 class RunSettings:
     """How ``gdwm run`` executes the DAG."""
 
-    on_scene_error: str = "fail"
+    on_scene_error: SceneErrorPolicy = SceneErrorPolicy.fail
     """Per-scene user errors: ``fail`` the stage after the other scenes finish, or ``skip`` the scene."""
     max_retries: int = 3
     """Retries of a task or actor call whose worker process died (user errors are not retried)."""

@@ -32,6 +32,8 @@ from gdwm.zoo.registry import lineage_tags
 
 TAG_STAGE, TAG_KEY, TAG_VERSION, TAG_SCENES = "gdwm.stage", "gdwm.cache_key", "gdwm.version", "gdwm.scenes"
 TAG_CODE = "gdwm.code"
+TAG_RECOMPUTES = "gdwm.recomputes"
+"""On a stage run that recomputed a key whose earlier run had finished: that run's id."""
 SAME_CODE, ALL, NONE = "same_code", "all", "none"
 """``cache.reuse`` modes (``gdwm.config.ReuseMode``)."""
 COMPUTED, REUSED_SAME, REUSED_OTHER, REUSED_UNKNOWN = "", "same code", "other code", "unknown code"
@@ -78,6 +80,8 @@ class RunEnv:
     """Stage -> its code fingerprint (``gdwm.fingerprint.CodeFingerprint.as_dict``); its digest enters the key."""
     reuse: Mapping[str, str] = field(default_factory=dict)
     """Stage -> ``cache.reuse`` mode (default ``same_code``)."""
+    verify: bool = True
+    """``cache.verify``: re-hash an entry's files on every lookup (else trust a complete manifest and the sizes)."""
 
 
 @dataclass(frozen=True)
@@ -157,17 +161,17 @@ def upstream_bases(results: tuple[StageResult, ...], scene: str | None) -> dict[
     return out
 
 
-def find_entry(cache: Cache, stage: str, key: str, base: str, mode: str, verify: bool = True
+def find_entry(cache: Cache, stage: str, key: str, base: str, mode: str, verify: bool = True, use: bool = True
                ) -> tuple[Manifest | None, str]:  # fmt: skip
     """The entry a stage reuses under ``mode`` and where it came from (``REUSED_*``); (None, COMPUTED) = run it."""
     if mode == NONE:
         return None, COMPUTED
-    m = cache.lookup(stage, key, verify)
+    m = cache.lookup(stage, key, verify, use)
     if m is not None:
         return m, REUSED_SAME
     if mode != ALL:
         return None, COMPUTED
-    m = cache.lookup_base(stage, base, verify)
+    m = cache.lookup_base(stage, base, verify, use)
     if m is None:
         return None, COMPUTED
     return m, REUSED_UNKNOWN if m.code is None else REUSED_OTHER
@@ -188,9 +192,10 @@ def _discard_checkpoints(checkpoint_root: str, stage: str, key: str) -> None:
     discard_checkpoints(checkpoint_root, stage, key)
 
 
-def verified(cache: Cache, checkpoint_root: str, stage: str, key: str) -> bool:
-    """The entry is present and intact; a corrupt one is moved aside with its key's training checkpoints."""
-    if cache.lookup(stage, key, verify=True) is not None:
+def verified(cache: Cache, checkpoint_root: str, stage: str, key: str, verify: bool = True) -> bool:
+    """The entry is present and intact (``verify``: its files re-hashed); a corrupt one is moved aside with its key's
+    training checkpoints."""
+    if cache.lookup(stage, key, verify=verify) is not None:
         return True
     if any(k == key for _, k, _ in cache.last_invalid):
         _discard_checkpoints(checkpoint_root, stage, key)
@@ -199,7 +204,7 @@ def verified(cache: Cache, checkpoint_root: str, stage: str, key: str) -> bool:
 
 def _lookup(cache: Cache, env: RunEnv, sd: StageDef, key: str, base: str) -> tuple[Manifest | None, str]:
     mode = env.reuse.get(sd.name, SAME_CODE)
-    hit, how = find_entry(cache, sd.name, key, base, mode)
+    hit, how = find_entry(cache, sd.name, key, base, mode, env.verify)
     if hit is None and (mode == NONE or any(k == key for _, k, _ in cache.last_invalid)):
         _discard_checkpoints(env.checkpoint_root, sd.name, key)
     return hit, how
@@ -232,14 +237,20 @@ def _open_stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping) -> str
 
 
 def _stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping) -> str:
-    """The MLflow run for this key: reopened if an earlier attempt left one, else created under the parent."""
-    found = call(env.sink, "search_runs", f"tags.`{TAG_KEY}` = '{key}' and tags.`{TAG_STAGE}` = '{sd.name}'")
-    if found:
-        run_id = found[0]["run_id"]
+    """The MLflow run for this key: an unfinished earlier attempt's is reopened (a killed attempt leaves no
+    duplicate); after a finished one (a recompute: a corrupt or invalidated entry, a re-run scene, a forced
+    recompute) a new run is created, tagged ``gdwm.recomputes`` with the original, whose history stays as it was."""
+    found = call(env.sink, "search_runs", f"tags.`{TAG_KEY}` = '{key}' and tags.`{TAG_STAGE}` = '{sd.name}'",
+                 1000, ["attributes.start_time DESC"])  # fmt: skip
+    unfinished = [r for r in found if r["status"] != "FINISHED"]
+    if unfinished:
+        run_id = unfinished[0]["run_id"]
         call(env.sink, "reopen_run", run_id)
         call(env.sink, "set_tags", run_id, {"gdwm.resumed": "true"})
         return run_id
     tags = {TAG_STAGE: sd.name, TAG_KEY: key, TAG_VERSION: sd.version, "gdwm.kind": "stage", **env.run_tags}
+    if found:
+        tags[TAG_RECOMPUTES] = found[0]["run_id"]
     run_id = call(env.sink, "create_run", f"{sd.name}-{key[:8]}", tags, env.parent_run_id)
     call(env.sink, "log_params", run_id, dict(subset))
     return run_id

@@ -309,6 +309,7 @@ def env_settings(cfg: DictConfig, meta: dict) -> dict:
         on_scene_error=cfg.run.on_scene_error,
         max_retries=cfg.run.max_retries,
         deterministic=cfg.run.deterministic,
+        verify=cfg.cache.verify,
         train_settings={"checkpoint_every": cfg.run.checkpoint_every, "max_failures": cfg.run.max_failures},
         tracking_uri=cfg.tracking.uri,
     )
@@ -404,7 +405,7 @@ def _plan_result(sd, sub, env: RunEnv, ups: tuple[StageResult, ...], cache: Cach
     for s in scenes:
         upk = upstream_keys(ups, s)
         key, bases[s] = stage_key(sd, sub, upk, env, scene=s), stage_base(sd, sub, upstream_bases(ups, s), env, scene=s)
-        hit, how[s] = find_entry(cache, sd.name, key, bases[s], mode, verify=False)
+        hit, how[s] = find_entry(cache, sd.name, key, bases[s], mode, verify=False, use=False)
         keys[s] = hit.key if hit is not None else key
         reason = "" if hit is not None else why(entries.of(sd.name, s), sd, sub, upk, bases[s], env)
         rows.append(PlanRow(sd.name, s, keys[s], "cached" if hit else "to run", sd.resources, how[s], reason))

@@ -529,7 +529,9 @@ def run_pipeline(
         return LaunchSummary(naive=sum(len(t.order) for t in trials))
     cache = Cache(cfg.cache.uri)
     if all(r.status == "cached" and r.reused == REUSED_SAME for t in trials for r in t.plan) and all(
-        verified(cache, t.settings["checkpoint_root"], r.stage, r.key) for t in trials for r in t.plan
+        verified(cache, t.settings["checkpoint_root"], r.stage, r.key, t.settings["verify"])
+        for t in trials
+        for r in t.plan
     ):
         # Nothing to run: no Ray, no tracking; a no-op re-run costs only the hash checks.
         n = len({(r.stage, r.key) for t in trials for r in t.plan})
@@ -545,7 +547,7 @@ def _cached_results(rows: list[PlanRow], cache: Cache) -> dict[str, StageResult]
     """Every stage's entry (local directory, per scene where it fans out) when the whole plan is cached."""
     out: dict[str, StageResult] = {}
     for r in rows:
-        m = cache.lookup(r.stage, r.key, verify=False)
+        m = cache.lookup(r.stage, r.key, verify=False, use=False)  # verified (and used) just before
         path = str(cache.materialize(m))
         if r.scene is None:
             out[r.stage] = StageResult(r.stage, r.key, True, m.run_id, path=path, extra=dict(m.extra))

@@ -1,4 +1,5 @@
-"""The consoles gdwm prints with: wide enough when piped (CI logs, tests) that tables do not wrap."""
+"""The consoles gdwm prints with: wide enough when piped (CI logs, tests) that tables do not wrap; text printed
+through them has its credentials masked (:func:`gdwm.redact.redact`), whatever message carries a URI."""
 
 from __future__ import annotations
 
@@ -7,13 +8,23 @@ import sys
 from rich.console import Console
 from rich.table import Table
 
+from gdwm.redact import redact
+
 
 def _width(stream) -> int | None:
     return None if stream.isatty() else 160
 
 
-console = Console(highlight=False, width=_width(sys.stdout))
-err_console = Console(stderr=True, highlight=False, soft_wrap=True)
+class RedactingConsole(Console):
+    """A ``Console`` whose ``print`` masks credentials in its string arguments (tables and other renderables
+    are printed as given: build them from redacted text)."""
+
+    def print(self, *objects, **kwargs) -> None:
+        super().print(*(redact(o) if isinstance(o, str) else o for o in objects), **kwargs)
+
+
+console = RedactingConsole(highlight=False, width=_width(sys.stdout))
+err_console = RedactingConsole(stderr=True, highlight=False, soft_wrap=True)
 
 
 def _fmt_bytes(n: int) -> str:

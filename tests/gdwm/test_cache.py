@@ -378,3 +378,23 @@ def test_concurrent_writers_publish_one_entry(tmp_path):
     assert {f.path: f.sha256 for f in results[0].files} == {
         rel: hashlib.sha256((entry / rel).read_bytes()).hexdigest() for rel in FILES
     }
+
+
+def test_cache_verify_reaches_the_lookups_a_run_makes(tmp_path):
+    """``cache.verify`` (config) -> RunEnv.verify -> the verified lookups: off trusts the manifest, on re-hashes."""
+    from gdwm.config import load_config
+    from gdwm.executor import verified
+    from gdwm.plan import env_settings
+
+    meta = {"fingerprint": "data", "scenes": []}
+    assert env_settings(load_config([]), meta)["verify"] is True
+    assert env_settings(load_config(["cache.verify=false"]), meta)["verify"] is False
+    cache = Cache(tmp_path / "cache")
+    m = publish(cache, make_src(tmp_path / "src"))
+    f = Path(cache.entry_uri("lora", m.key)) / "adapter.bin"
+    f.write_bytes(b"\xff" + f.read_bytes()[1:])  # same size, other bytes
+    ckpt = tmp_path / "ckpt"
+    (ckpt / "lora" / m.key / "steps").mkdir(parents=True)
+    assert verified(cache, str(ckpt), "lora", m.key, verify=False) is True  # trusted: the flip goes unseen
+    assert verified(cache, str(ckpt), "lora", m.key, verify=True) is False  # re-hashed: moved aside
+    assert cache.entries("lora") == [] and not (ckpt / "lora" / m.key).exists()  # and its checkpoints discarded

@@ -285,12 +285,18 @@ def _gdwm_run(root: Path, *overrides: str) -> subprocess.CompletedProcess:
     return r
 
 
-def _starts(root: Path) -> list[float]:
-    """The ``start`` step the tokenizer's training loop logged, per step it trained (one MLflow run per key)."""
+def _tokenizer_runs(root: Path) -> list:
+    """The tokenizer's stage runs, oldest first (a recompute of a finished key gets a run of its own)."""
     client = mlflow.MlflowClient(f"sqlite:///{(root / 'w').resolve()}/mlflow.db")
     exp = client.get_experiment_by_name("gdwm")
-    (run,) = [x for x in client.search_runs([exp.experiment_id]) if x.data.tags.get("gdwm.stage") == "tokenizer"]
-    return sorted(m.value for m in client.get_metric_history(run.info.run_id, "start"))
+    runs = [x for x in client.search_runs([exp.experiment_id]) if x.data.tags.get("gdwm.stage") == "tokenizer"]
+    return sorted(runs, key=lambda r: r.info.start_time)
+
+
+def _starts(root: Path) -> list[list[float]]:
+    """Per tokenizer run, the ``start`` step its training loop logged at every step it trained."""
+    client = mlflow.MlflowClient(f"sqlite:///{(root / 'w').resolve()}/mlflow.db")
+    return [sorted(m.value for m in client.get_metric_history(r.info.run_id, "start")) for r in _tokenizer_runs(root)]
 
 
 def test_recompute_after_a_corrupted_checkpoint_publishes_a_clean_runs_weights(tmp_path):
@@ -314,9 +320,9 @@ def test_recompute_after_a_corrupted_checkpoint_publishes_a_clean_runs_weights(t
     assert (cache.materialize(again) / "weights.pt").read_bytes() == clean_weights
     # retrained step 3 only, from step 2's checkpoint; the discarded one is named in the stage's MLflow run
     client = mlflow.MlflowClient(f"sqlite:///{(tmp_path / 'w').resolve()}/mlflow.db")
-    exp = client.get_experiment_by_name("gdwm")
-    (run,) = [x for x in client.search_runs([exp.experiment_id]) if x.data.tags.get("gdwm.stage") == "tokenizer"]
-    assert sorted(m.value for m in client.get_metric_history(run.info.run_id, "start")) == [0, 0, 0, 0, 3]
+    first, run = _tokenizer_runs(tmp_path)  # the recompute has its own run, linked to the first
+    assert run.data.tags["gdwm.recomputes"] == first.info.run_id
+    assert _starts(tmp_path) == [[0, 0, 0, 0], [3]]
     note = client.download_artifacts(
         run.info.run_id, "train/discarded_checkpoints/step_000000003.txt", str(tmp_path / "dl")
     )
@@ -326,14 +332,13 @@ def test_recompute_after_a_corrupted_checkpoint_publishes_a_clean_runs_weights(t
     # The executor discards a key's checkpoints before it recomputes the entry: after a corrupt entry (its
     # checkpoints, intact or not, may be what produced it) and when forced (cache.reuse=none means train again,
     # not resume at the last step). Either way training starts at step 0 and publishes the same bytes.
-    assert _starts(tmp_path) == [0, 0, 0, 0, 3]
     _flip(cache.materialize(again) / "weights.pt")  # the entry is corrupt, its checkpoints intact
     (tmp_path / "executions.log").write_text("")
     _gdwm_run(tmp_path)
     assert [line.split()[0] for line in (tmp_path / "executions.log").read_text().splitlines()] == ["tokenizer"]
-    assert _starts(tmp_path) == [0, 0, 0, 0, 0, 0, 0, 0, 3]  # 4 more steps from step 0: nothing was resumed
+    assert _starts(tmp_path) == [[0, 0, 0, 0], [3], [0, 0, 0, 0]]  # a third run, from step 0: nothing resumed
     assert (cache.materialize(cache.lookup("tokenizer", clean.key)) / "weights.pt").read_bytes() == clean_weights
     assert sorted(p.name for p in steps.iterdir()) == [f"step_{i:09d}" for i in range(4)]
     _gdwm_run(tmp_path, "cache.reuse=none")
-    assert _starts(tmp_path) == [0] * 12 + [3]
+    assert _starts(tmp_path) == [[0, 0, 0, 0], [3], [0, 0, 0, 0], [0, 0, 0, 0]]
     assert (cache.materialize(cache.lookup("tokenizer", clean.key)) / "weights.pt").read_bytes() == clean_weights

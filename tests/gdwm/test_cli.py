@@ -84,3 +84,11 @@ def test_data_synth_prints_the_dataset_summary(tmp_path):
     assert names == ["rdp", "vg2d", "vg3d", "plan", "traj"]
     assert dict(zip(names, counts, strict=True)) == {t: qa.count(t) for t in names}
     assert sum(counts) == len(qa)
+
+
+def test_status_of_a_workdir_where_nothing_ran_creates_nothing(tmp_path):
+    work = tmp_path / "nowhere"
+    r = _gdwm("status", f"workdir={work}")
+    assert r.returncode == 1
+    assert f"no MLflow store at {work.resolve()}/mlflow.db: nothing has run in workdir" in r.stderr.replace("\n", "")
+    assert not work.exists()

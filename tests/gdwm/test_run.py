@@ -219,6 +219,14 @@ def test_flipped_byte_is_detected_and_recomputed(first_run, tmp_path):
     # only the corrupted scene recomputes; its key (from config) is unchanged, so nothing downstream reruns
     assert toy.executions() == [("reconstruct", "scene-0001")]
     assert cache.lookup("reconstruct", entry.key).files == entry.files
+    # history stays history: the recompute has its own run, linked to the original, which keeps its scenes
+    original, again = sorted(
+        (r for r in toy.runs() if r.data.tags["gdwm.stage"] == "reconstruct"), key=lambda r: r.info.start_time
+    )
+    assert original.data.tags["gdwm.scenes"] == "scene-0000,scene-0001,scene-0002"
+    assert again.data.tags["gdwm.scenes"] == "scene-0001" and again.info.status == "FINISHED"
+    assert again.data.tags["gdwm.recomputes"] == original.info.run_id
+    assert again.data.tags["gdwm.cache_key"] == original.data.tags["gdwm.cache_key"]
 
 
 def test_dry_run_prints_plan_without_running(first_run, tmp_path):

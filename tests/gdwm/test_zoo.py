@@ -205,3 +205,44 @@ def test_pin_references_resolve_and_tag_versions_on_a_store(tmp_path):
     }
     assert client.get_model_version("gdwm-x", "1").tags == {"gdwm.variant": "v", "gdwm.cache_key": "k1"}
     backend.close()
+
+
+def test_zoo_load_refuses_a_version_whose_files_lie_outside_its_run(tmp_path):
+    """A registered version's source is copied only from inside the artifact directory of the run that registered it:
+    another directory, a ``..`` out of the run, or a symlink inside it leading out is refused, naming the path."""
+    zoo = Zoo.__new__(Zoo)  # a store without the toy dataset or Ray
+    zoo.root, zoo.work = tmp_path, tmp_path / "w"
+    zoo.uri = f"sqlite:///{zoo.work.resolve()}/mlflow.db"
+    backend = TrackingBackend(zoo.uri, "gdwm", str(zoo.work / "mlartifacts"))
+    component = tmp_path / "c"
+    component.mkdir()
+    (component / "w.bin").write_bytes(b"ok")
+    run_id = backend.create_run("r", {})
+    assert backend.register_component(run_id, "gdwm-x", str(component), "v", {}) == 1
+    backend.close()
+    secret = tmp_path / "outside"
+    secret.mkdir()
+    (secret / "secret.pth").write_bytes(b"secret")
+    client = zoo.client()
+    run_dir = Path(client.get_run(run_id).info.artifact_uri)
+    (run_dir / "zoo" / "gdwm-x" / "link.pth").symlink_to(secret / "secret.pth")  # version 1 now leads out too
+    escape = f"{run_dir}/../../../../outside"  # <w>/mlartifacts/<run>/artifacts/..
+    for source in (str(secret), escape):
+        client.create_model_version("gdwm-x", source, run_id)  # versions 2, 3
+    base = run_dir.resolve()
+    refused = {
+        1: f"{run_dir}/zoo/gdwm-x/link.pth leads outside the artifact directory {base} of its run {run_id} "
+        f"(to {secret / 'secret.pth'})",
+        2: f"source {secret}: {secret} leads outside the artifact directory {base} of its run {run_id} (to {secret})",
+        3: f"source {escape}: {escape} leads outside the artifact directory {base} of its run {run_id} (to {secret})",
+    }
+    for version, message in refused.items():
+        out = tmp_path / f"v{version}"
+        r = zoo.gdwm("zoo", "load", "args.name=gdwm-x", f"args.version={version}", f"args.out={out}")
+        assert r.returncode == 1, r.stdout + r.stderr
+        assert f"gdwm zoo load: ZooError: gdwm-x version {version}: source " in r.stderr
+        assert f"{message}; refusing to copy it" in r.stderr
+        assert not out.exists()
+    (run_dir / "zoo" / "gdwm-x" / "link.pth").unlink()
+    _ok(zoo.gdwm("zoo", "load", "args.name=gdwm-x", "args.version=1", f"args.out={tmp_path / 'v1'}"))
+    assert _files(tmp_path / "v1") == {"w.bin": b"ok", "MLmodel": (run_dir / "zoo" / "gdwm-x" / "MLmodel").read_bytes()}

@@ -27,6 +27,12 @@ class Format(StrEnum):
     html = "html"
 
 
+class BootstrapMethod(StrEnum):
+    BCa = "BCa"
+    percentile = "percentile"
+    basic = "basic"
+
+
 LOWER_IS_BETTER = {"mae", "fid", "fvd", "depth_absrel", "depth_rmse"}
 
 
@@ -94,7 +100,7 @@ class CompareArgs:
     """Bootstrap resamples; each one rescores every row's per-sample predictions once."""
     stats_seed: int = 0
     """Seed of the bootstrap's resampling: the same runs give the same intervals and marks."""
-    bootstrap_method: str = "BCa"
+    bootstrap_method: BootstrapMethod = BootstrapMethod.BCa
     """``BCa`` (its jackknife rescores every row once per held-out sample), ``percentile`` or ``basic``."""
 
 

@@ -19,6 +19,7 @@ from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID
 from ray.actor import ActorHandle
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
+from gdwm.redact import redact
 from gdwm.tracking.owner import OWNER_TAG, RECONCILED_TAG, owner_is_alive, process_owner
 from gdwm.tracking.params import (
     MAX_METRICS_PER_BATCH,
@@ -94,7 +95,7 @@ class TrackingBackend:
         all_tags = {OWNER_TAG: self._owner(), **self.default_tags, **tags}
         if parent_run_id:
             all_tags[MLFLOW_PARENT_RUN_ID] = parent_run_id
-        all_tags = {k: truncate(str(v), MAX_TAG_VAL_LENGTH) for k, v in all_tags.items()}
+        all_tags = {k: truncate(redact(str(v)), MAX_TAG_VAL_LENGTH) for k, v in all_tags.items()}
         run_id = self.client.create_run(self.experiment_id, tags=all_tags, run_name=name).info.run_id
         if STAGE_TAG in all_tags:
             self.start_system_metrics(run_id)
@@ -121,7 +122,7 @@ class TrackingBackend:
             self.client.log_batch(run_id, metrics=chunk)
 
     def set_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
-        items = [RunTag(k, truncate(str(v), MAX_TAG_VAL_LENGTH)) for k, v in tags.items()]
+        items = [RunTag(k, truncate(redact(str(v)), MAX_TAG_VAL_LENGTH)) for k, v in tags.items()]
         for chunk in batches(items, MAX_PARAMS_TAGS_PER_BATCH):
             self.client.log_batch(run_id, tags=chunk)
 
@@ -129,7 +130,7 @@ class TrackingBackend:
         self.client.log_artifact(run_id, local_path, artifact_path)
 
     def log_text(self, run_id: str, text: str, artifact_file: str) -> None:
-        self.client.log_text(run_id, text, artifact_file)
+        self.client.log_text(run_id, redact(text), artifact_file)  # error.txt may quote a URI
 
     def register_component(self, run_id: str, name: str, local_path: str, variant: str, tags: Mapping[str, str]) -> int:
         """Log ``local_path`` as the MLflow model ``zoo/<name>`` of the run and register it as a new version of
@@ -213,6 +214,7 @@ class TrackingBackend:
 def _refused(uri: str, experiment: str, e: MlflowException) -> PermissionError | None:
     """A server's 401/403 as an error that says what to set (the CLI prints it, exit 1); None for others."""
     user = read_mlflow_creds().username  # the name only, never the password
+    uri = redact(uri)
     status = e.get_http_status_code()
     if status == 401:
         who = f"rejected the credentials of user '{user}'" if user else "needs credentials"

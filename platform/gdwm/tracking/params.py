@@ -14,6 +14,8 @@ from mlflow.utils.validation import (
 )
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from gdwm.redact import redact
+
 __all__ = [
     "MAX_METRICS_PER_BATCH",
     "MAX_PARAMS_TAGS_PER_BATCH",
@@ -38,7 +40,8 @@ def _plain(value: Any) -> Any:
 
 
 def flatten_params(cfg: Mapping | DictConfig, prefix: str = "") -> dict[str, str]:
-    """``{"a": {"b": 1}, "l": [1, 2]}`` -> ``{"a.b": "1", "l": "[1, 2]"}``; values cut to MLflow's param limit."""
+    """``{"a": {"b": 1}, "l": [1, 2]}`` -> ``{"a.b": "1", "l": "[1, 2]"}``; values cut to MLflow's param limit,
+    credentials in them masked (:func:`gdwm.redact.redact`: params are readable by every user of the store)."""
     out: dict[str, str] = {}
     for key, value in _plain(cfg).items():
         full = f"{prefix}{key}"
@@ -50,7 +53,7 @@ def flatten_params(cfg: Mapping | DictConfig, prefix: str = "") -> dict[str, str
             text = json.dumps(value, default=str)
         else:
             text = str(value)
-        out[full] = truncate(text, MAX_PARAM_VAL_LENGTH)
+        out[full] = truncate(redact(text), MAX_PARAM_VAL_LENGTH)
     return out
 
 

@@ -11,6 +11,7 @@ from mlflow.entities.model_registry import ModelVersion
 from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
+from gdwm.redact import redact
 from gdwm.term import console
 from gdwm.zoo.refs import CHAMPION, ZooArgs, ZooError
 from gdwm.zoo.registry import (
@@ -70,7 +71,7 @@ def zoo_list(cfg: DictConfig) -> int:
     if not models:
         console.print(f"the model zoo of {cfg.tracking.uri} is empty: training stages register their components")
         return 0
-    t = Table(title=f"model zoo in {cfg.tracking.uri}", header_style="bold")
+    t = Table(title=f"model zoo in {redact(cfg.tracking.uri)}", header_style="bold")
     for col in ("name", "version", "variant", "aliases", "stage", "cache key", "created", "metrics"):
         t.add_column(col, justify="right" if col == "version" else "left")
     for model in models:

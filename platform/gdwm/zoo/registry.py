@@ -4,6 +4,11 @@ A component version is an MLflow model directory logged under ``zoo/<name>`` of 
 files plus an ``MLmodel`` whose ``gdwm`` flavor names the component, its variant and its files. Its registered
 version carries the lineage as tags (``gdwm.variant``, ``gdwm.stage``, ``gdwm.cache_key``, ``gdwm.upstream.<stage>``,
 ``gdwm.metric.<name>``; a sweep adds ``gdwm.sweep``, ``gdwm.trial``); every new version becomes ``candidate``.
+
+Downloads stay inside the store: a version whose files are a local directory is copied only when that directory, and
+everything under it with symlinks followed, resolves inside the artifact directory of the run that registered it
+(where ``register`` logs them, ``<run artifacts>/zoo/<name>``); a version registered by no run, or pointing elsewhere
+(``..``, another directory, a symlink leading out), is a ZooError naming it. Remote sources are their store's business.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from mlflow.entities.model_registry import ModelVersion, RegisteredModel
 from mlflow.exceptions import MlflowException
 from mlflow.models import Model
 from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
+from mlflow.store.artifact.local_artifact_repo import LocalArtifactRepository
 from omegaconf import DictConfig, ListConfig
 
 from gdwm.zoo.refs import CANDIDATE, NAME_PREFIX, Ref, ZooError, is_ref, parse_ref
@@ -164,9 +170,53 @@ def flavor(tracking_uri: str, name: str, version: int) -> dict:
 
 def _fetch(tracking_uri: str, name: str, version: int, path: str, dst: Path) -> str:
     # Not models:/ URIs: MLflow resolves those against the process-global registry, not this store.
-    source = MlflowClient(tracking_uri, registry_uri=tracking_uri).get_model_version_download_uri(name, str(version))
+    client = MlflowClient(tracking_uri, registry_uri=tracking_uri)
+    source = client.get_model_version_download_uri(name, str(version))
+    repo = get_artifact_repository(source, tracking_uri=tracking_uri)
+    check_contained(client, name, version, source, tracking_uri)
     dst.mkdir(parents=True, exist_ok=True)
-    return get_artifact_repository(source, tracking_uri=tracking_uri).download_artifacts(path, dst_path=str(dst))
+    return repo.download_artifacts(path, dst_path=str(dst))
+
+
+def check_contained(client: MlflowClient, name: str, version: int, source: str, tracking_uri: str) -> None:
+    """A ZooError naming the version and the offending path unless a local ``source`` (and all under it, symlinks
+    followed) lies inside the artifact directory of the run that registered the version (see the module doc)."""
+    local = _local_dir(source, tracking_uri)
+    if local is None:
+        return
+    run_id = client.get_model_version(name, str(version)).run_id
+    root = _local_dir(client.get_run(run_id).info.artifact_uri, tracking_uri) if run_id else None
+    where = f"{name} version {version}: source {source}"
+    if root is None:
+        raise ZooError(f"{where} is a local directory but no run with local artifacts registered it; refusing it")
+    base = root.resolve()
+    hit = _outside(local, base, set())
+    if hit is not None:
+        raise ZooError(
+            f"{where}: {hit[0]} leads outside the artifact directory {base} of its run {run_id} (to {hit[1]}); "
+            "refusing to copy it"
+        )
+
+
+def _local_dir(uri: str, tracking_uri: str) -> Path | None:
+    """The local directory an artifact URI stands for (``runs:/`` and ``models:/`` followed); None when remote."""
+    repo = get_artifact_repository(uri, tracking_uri=tracking_uri)
+    while getattr(repo, "repo", None) is not None:
+        repo = repo.repo
+    return Path(repo.artifact_dir) if isinstance(repo, LocalArtifactRepository) else None
+
+
+def _outside(path: Path, base: Path, seen: set[Path]) -> tuple[Path, Path] | None:
+    """``(entry, where it resolves)`` of the first entry at or under ``path``, symlinks followed, outside ``base``."""
+    real = path.resolve()
+    if not real.is_relative_to(base):
+        return path, real
+    if real.is_dir() and real not in seen:
+        seen.add(real)
+        for child in sorted(path.iterdir()):
+            if (hit := _outside(child, base, seen)) is not None:
+                return hit
+    return None
 
 
 def tag_versions(client: MlflowClient, cache_keys: Iterable[str], tags: Mapping[str, Any]) -> list[tuple[str, int]]:

@@ -312,3 +312,76 @@ def test_unlisted_file_without_ids_in_its_path(release, tmp_path):
         "gauss/misc/model.pth: no QA record lists it and its path names no scene/frame "
         "(expected .../scene_<n>/<frame>.pth or .../<n>_<view>/.../<frame>.pth)"
     )
+
+
+def _outside_pth(tmp_path: Path) -> Path:
+    """A valid .pth next to (not inside) the release: what a path trick would smuggle in."""
+    secret = tmp_path / "outside" / "secret.pth"
+    write_pth(secret, gaussian_fields(2, seed=11))
+    return secret.resolve()
+
+
+@pytest.mark.parametrize("how", ["dotdot", "absolute", "symlink"])
+def test_gauss_paths_leading_out_of_the_source_are_refused(release, tmp_path, how):
+    secret = _outside_pth(tmp_path)
+    listed = {"dotdot": "../outside/secret.pth", "absolute": str(secret), "symlink": "gauss/scene_0002/link.pth"}[how]
+    if how == "symlink":
+        (release.root / listed).symlink_to(secret)
+    evil = record("evil", 2, 1, [listed], "NuInteract_RD&P", "prediction", "<gauss> ?")
+    write_jsonl(release.root / "qa_val.jsonl", [release.records[-1], evil])
+    root = tmp_path / "out"
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(), root, str(release.root))
+    assert str(e.value) == (
+        f"qa_val.jsonl:2 sample 'evil': gauss path {listed} leads outside {release.root.resolve()} (to {secret}); "
+        "refusing to read it"
+    )
+    assert_nothing_published(root)
+
+
+def test_globbed_files_and_pose_files_leading_out_are_refused(release, tmp_path):
+    secret = _outside_pth(tmp_path)
+    link = release.root / "gauss" / "scene_0002" / "frame_00009.pth"  # no record lists it: found by gauss_glob
+    link.symlink_to(secret)
+    root = tmp_path / "out"
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(), root, str(release.root))
+    assert str(e.value) == (
+        f"Gaussian file gauss/scene_0002/frame_00009.pth leads outside {release.root.resolve()} (to {secret}); "
+        "refusing to read it"
+    )
+    assert_nothing_published(root)
+    link.unlink()
+    for scene in (0, 2):
+        (tmp_path / "outside" / f"{scene}.txt").write_text("\n".join([" ".join(map(str, np.eye(4).ravel()))] * 4))
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(pose_dir="../outside"), root, str(release.root))
+    assert str(e.value) == (
+        f"scene_0000: pose file ../outside/0.txt leads outside {release.root.resolve()} "
+        f"(to {tmp_path.resolve() / 'outside' / '0.txt'}); refusing to read it"
+    )
+    assert_nothing_published(root)
+
+
+def test_a_qa_file_symlinked_from_outside_is_refused(release, tmp_path):
+    (tmp_path / "outside").mkdir()
+    outside = tmp_path / "outside" / "qa_more.jsonl"
+    write_jsonl(outside, [record("q9", 2, 0, [S2F0], "NuInteract_RD&P", "prediction", "<gauss> more?")])
+    (release.root / "qa_more.jsonl").symlink_to(outside)
+    root = tmp_path / "out"
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(), root, str(release.root))
+    assert str(e.value) == (
+        f"QA file qa_more.jsonl leads outside {release.root.resolve()} (to {outside.resolve()}); refusing to read it"
+    )
+    assert_nothing_published(root)
+
+
+def test_paths_that_stay_inside_the_source_still_import(release, tmp_path):
+    (release.root / "links").mkdir()
+    (release.root / "links" / "s2f0.pth").symlink_to(release.root / S2F0)
+    inside = [f"gauss/scene_0002/../scene_0002/{Path(S2F0).name}", "links/s2f0.pth"]
+    q4 = record("q4", 2, 0, inside, "NuInteract_Planning", "planning_turn_left", "<gauss> Should we turn?")
+    write_jsonl(release.root / "qa_val.jsonl", [q4])
+    ds = GSQADataset(build(ReleaseConfig(), tmp_path / "out", str(release.root)))
+    assert_gaussians(ds.scene("scene_0002").frame(0).gaussians(), expected(release.tensors[S2F0]))
