@@ -251,6 +251,7 @@ def test_dry_run_prints_plan_without_running(first_run, tmp_path):
     assert ("diffusion", "train: 1 CPU, 0 GPU, in-process") in res  # and Ray Train with num_workers=0
 
 
+@pytest.mark.slow  # make test-all (keeps `make test` under 20 minutes on 2 cores)
 def test_killed_scene_worker_is_retried_and_outputs_match(first_run, tmp_path):
     toy = Toy(tmp_path)
     _ok(toy.run(GDWM_TEST_KILL="reconstruct:scene-0001"))
