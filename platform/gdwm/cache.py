@@ -139,6 +139,11 @@ class Manifest:
         return cls(files=files, **d)
 
 
+CACHE_KEYS = "cache_keys.json"
+"""Artifact of trial and regression runs: ``{stage: [key, ...]}``, every entry their results came from (per-scene
+stages: each scene's), what ``gdwm cache gc`` keeps for runs it must not break."""
+
+
 class CacheError(Exception):
     """A cache entry that cannot be published or read; the message names stage, key prefix and file."""
 

@@ -35,15 +35,13 @@ import pyarrow.fs as pafs
 from omegaconf import DictConfig
 from rich.table import Table
 
-from gdwm.cache import MANIFEST, USED_DIR, Cache, Manifest, cache_key, canonical_json
+from gdwm.cache import CACHE_KEYS, MANIFEST, USED_DIR, Cache, Manifest, cache_key, canonical_json
 from gdwm.term import console, err_console
 
 log = logging.getLogger(__name__)
 
 LEFTOVER_AGE_S = 86400.0
 """``.tmp-*``/``.trash-*`` dirs and incomplete entries untouched for this long are debris, not a publish in progress."""
-CACHE_KEYS_ARTIFACT = "cache_keys.json"
-"""Artifact of regression and trial runs: ``{"<stage>": ["<key>", ...]}``, every entry their results came from."""
 _MAX_COMBINATIONS = 256
 _KEY_RE = re.compile(r"[0-9a-f]{64}")
 _PREFIX_RE = re.compile(r"[0-9a-f]{8,64}")
@@ -349,12 +347,12 @@ def _no_progress_bars() -> Iterator[None]:
 
 def _cache_keys(client, run_id: str, tmp: str) -> dict[str, list[str]] | None:
     """A run's ``cache_keys.json``; None when it has none."""
-    if not any(a.path == CACHE_KEYS_ARTIFACT for a in client.list_artifacts(run_id)):
+    if not any(a.path == CACHE_KEYS for a in client.list_artifacts(run_id)):
         return None
-    with open(client.download_artifacts(run_id, CACHE_KEYS_ARTIFACT, tmp)) as f:
+    with open(client.download_artifacts(run_id, CACHE_KEYS, tmp)) as f:
         data = json.load(f)
     if not isinstance(data, dict):
-        raise ValueError(f"run {run_id}: {CACHE_KEYS_ARTIFACT} is not a JSON object of stage -> [keys]")
+        raise ValueError(f"run {run_id}: {CACHE_KEYS} is not a JSON object of stage -> [keys]")
     return {str(s): [str(k) for k in (keys if isinstance(keys, list) else [keys])] for s, keys in data.items()}
 
 
@@ -406,7 +404,7 @@ def references(tracking_uri: str, entries: list[Entry]) -> Refs:
             listed = _cache_keys(client, rid, tmp)
             if listed is None:
                 refs.warnings.append(
-                    f"baseline run {rid} (benchmark {bench}) has no {CACHE_KEYS_ARTIFACT} (recorded by an older "
+                    f"baseline run {rid} (benchmark {bench}) has no {CACHE_KEYS} (recorded by an older "
                     "gdwm): the entries it used cannot be told apart and are not protected"
                 )
                 continue

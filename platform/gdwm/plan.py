@@ -387,8 +387,6 @@ def why(entries: list[Manifest], sd, sub: dict, upstream: dict[str, str], base: 
         out += [f"library: {d} {la.get(d, '-')} -> {lb.get(d, '-')}"
                 for d in sorted(la.keys() | lb.keys()) if la.get(d) != lb.get(d)]  # fmt: skip
     ups = [u for u in sorted(upstream) if ref.upstream.get(u) != upstream[u]]
-    if ups and ref.scene is None and any(u.startswith("scene:") for u in ref.upstream):
-        ups = []  # an aggregate's scenes, not upstream stages
     if ups:
         out.append("upstream: " + ", ".join(ups))
     if env.reuse.get(sd.name) == NONE:

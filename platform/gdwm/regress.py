@@ -213,8 +213,9 @@ def load_benchmark(cfg: DictConfig) -> BenchmarkConfig:
 
 def regress(cfg: DictConfig, argv: list[str]) -> int:
     """Run the suite; 0 no regression, 1 regression (named), 2 error."""
+    from gdwm.cache import CACHE_KEYS
     from gdwm.plan import PlanError
-    from gdwm.runner import CACHE_KEYS, aggregate, evaluation_metrics, evaluation_samples, run_pipeline
+    from gdwm.runner import aggregate, evaluation_metrics, evaluation_samples, run_pipeline
     from gdwm.tracking import TrackingBackend
 
     bench = load_benchmark(cfg)

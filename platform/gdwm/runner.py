@@ -35,7 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 from rich.live import Live
 from rich.table import Table
 
-from gdwm.cache import Cache
+from gdwm.cache import CACHE_KEYS, Cache
 from gdwm.config import SweepConfig
 from gdwm.dag import Pipeline
 from gdwm.determinism import worker_env
@@ -317,11 +317,6 @@ def aggregate(per_seed: list[dict[str, float]]) -> dict[str, float]:
         if len(values) > 1:
             out[f"std/{m}"] = statistics.stdev(values)
     return out
-
-
-CACHE_KEYS = "cache_keys.json"
-"""Artifact of trial (and regression) runs: ``{stage: [key, ...]}``, every cache entry their results came from
-(per-scene stages: each scene's), what ``gdwm cache gc`` keeps for runs it must not break."""
 
 
 def entry_keys(results: Mapping[str, StageResult]) -> dict[str, list[str]]:
