@@ -26,6 +26,7 @@ import ray
 
 from gdwm.cache import Cache, Manifest, cache_key
 from gdwm.determinism import stage_start
+from gdwm.keylock import KeyLock
 from gdwm.stage import StageContext, StageDef, UpstreamOutput
 from gdwm.tracking import Tracker, call
 from gdwm.zoo.registry import lineage_tags
@@ -340,10 +341,17 @@ def run_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResult) ->
     key = stage_key(sd, subset, upstream_keys(results, None), env)
     base = stage_base(sd, subset, upstream_bases(results, None), env)
     hit, how = _lookup(cache, env, sd, key, base)
-    if hit is not None:
-        _progress(env, sd.name, None, "cached", key=hit.key, run_id=hit.run_id or "")
-        path = str(cache.materialize(hit))
-        return StageResult(sd.name, hit.key, True, hit.run_id, path, extra=dict(hit.extra), base=base, reused=how)
+    if hit is None:
+        with _key_lock(cache, env, sd.name, None, key):
+            hit, how = _lookup(cache, env, sd, key, base)  # another driver may have computed it while we waited
+            if hit is None:
+                return _compute(sd, key, base, subset, env, results)
+    _progress(env, sd.name, None, "cached", key=hit.key, run_id=hit.run_id or "")
+    path = str(cache.materialize(hit))
+    return StageResult(sd.name, hit.key, True, hit.run_id, path, extra=dict(hit.extra), base=base, reused=how)
+
+
+def _compute(sd: StageDef, key: str, base: str, subset: dict, env: RunEnv, results) -> StageResult:
     run_id = _open_stage_run(env, sd, key, subset)
     _progress(env, sd.name, None, "running", key=key, run_id=run_id)
     tracker = Tracker(env.sink, run_id)
@@ -357,6 +365,15 @@ def run_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResult) ->
     call(env.sink, "end_run", run_id, "FINISHED")
     _progress(env, sd.name, None, "done")
     return StageResult(sd.name, key, False, run_id, path, extra=extra, base=base)
+
+
+def _key_lock(cache: Cache, env: RunEnv, stage: str, scene: str | None, key: str) -> KeyLock:
+    """The key's lock (see ``gdwm.keylock``); waiting for another driver shows on the progress board."""
+
+    def waiting(owner: str) -> None:
+        _progress(env, stage, scene, "waiting", key=key, message=f"another driver computes it ({owner})")
+
+    return KeyLock(cache, stage, key, on_wait=waiting)
 
 
 def _end_failed(env: RunEnv, run_id: str, text: str) -> None:
@@ -373,9 +390,16 @@ class SceneWorker:
         self.state = sd.setup(subset) if sd.setup is not None else None
 
     def process(self, scene: str, key: str, base: str, subset: dict, env: RunEnv, run_id: str, *results: StageResult):
-        _progress(env, self.sd.name, scene, "running", key=key)
-        tracker = ScopedTracker(env.sink, run_id, f"{scene}/")
-        path, _ = _execute(self.sd, key, base, subset, env, results, tracker, scene, self.state)
+        cache = Cache(env.cache_uri)
+        # A driver running another configuration may share this scene's key (same upstream, different scene set).
+        with _key_lock(cache, env, self.sd.name, scene, key):
+            forced = env.reuse.get(self.sd.name) == NONE
+            if not forced and (hit := cache.lookup(self.sd.name, key, env.verify)) is not None:
+                _progress(env, self.sd.name, scene, "cached", key=key)
+                return str(cache.materialize(hit))
+            _progress(env, self.sd.name, scene, "running", key=key)
+            tracker = ScopedTracker(env.sink, run_id, f"{scene}/")
+            path, _ = _execute(self.sd, key, base, subset, env, results, tracker, scene, self.state)
         _progress(env, self.sd.name, scene, "done", key=key)
         return path
 
@@ -390,20 +414,33 @@ def run_scene_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResu
     bases = {s: stage_base(sd, subset, upstream_bases(results, s), env, scene=s) for s in scenes}
     done: dict[str, tuple[str, str]] = {}
     how: dict[str, str] = {}
-    misses = []
-    for s in scenes:
-        hit, how[s] = _lookup(cache, env, sd, keys[s], bases[s])
-        if hit is None:
-            misses.append(s)
-        else:
-            done[s] = (hit.key, str(cache.materialize(hit)))
-            _progress(env, sd.name, s, "cached", key=hit.key)
-    agg = aggregate_key(sd, subset, {s: done[s][0] if s in done else keys[s] for s in scenes}, env)
+
+    def look(todo: list[str]) -> tuple[list[str], str]:
+        """The scenes of ``todo`` without an entry, and the aggregate key of the stage as of now."""
+        misses = []
+        for s in todo:
+            hit, how[s] = _lookup(cache, env, sd, keys[s], bases[s])
+            if hit is None:
+                misses.append(s)
+            else:
+                done[s] = (hit.key, str(cache.materialize(hit)))
+                _progress(env, sd.name, s, "cached", key=hit.key)
+        return misses, aggregate_key(sd, subset, {s: done[s][0] if s in done else keys[s] for s in scenes}, env)
+
     agg_base = aggregate_key(sd, subset, bases, env)
-    if not misses:
-        _progress(env, sd.name, None, "cached", key=agg)
-        return StageResult(sd.name, agg, True, None, scenes=done, base=agg_base, bases=bases,
-                           reused=least_trusted(list(how.values())))  # fmt: skip
+    misses, agg = look(scenes)
+    if misses:
+        with _key_lock(cache, env, sd.name, None, agg):
+            misses, agg = look(misses)  # another driver may have computed them while we waited
+            if misses:
+                return _compute_scenes(sd, subset, env, results, scenes, misses, keys, bases, done, agg)
+    _progress(env, sd.name, None, "cached", key=agg)
+    return StageResult(sd.name, agg, True, None, scenes=done, base=agg_base, bases=bases,
+                       reused=least_trusted(list(how.values())))  # fmt: skip
+
+
+def _compute_scenes(sd, subset, env: RunEnv, results, scenes, misses, keys, bases, done, agg) -> StageResult:
+    upstream_failed = {s for r in results for s in r.failed}
     run_id = _open_stage_run(env, sd, agg, subset)
     call(env.sink, "set_tags", run_id, {TAG_SCENES: ",".join(misses)})
     _progress(env, sd.name, None, "running", key=agg, run_id=run_id)

@@ -8,8 +8,15 @@ from dataclasses import dataclass
 import ray
 from rich.table import Table
 
-STATUSES = ("pending", "running", "cached", "done", "failed", "skipped", "blocked")
-_STYLE = {"cached": "cyan", "done": "green", "failed": "red", "running": "yellow", "blocked": "magenta"}
+STATUSES = ("pending", "waiting", "running", "cached", "done", "failed", "skipped", "blocked")
+_STYLE = {
+    "cached": "cyan",
+    "done": "green",
+    "failed": "red",
+    "running": "yellow",
+    "blocked": "magenta",
+    "waiting": "blue",
+}
 
 
 @dataclass

@@ -49,6 +49,7 @@ from gdwm.executor import (
     task_options,
     verified,
 )
+from gdwm.keylock import KeyLock
 from gdwm.plan import (
     PlanError,
     PlanRow,
@@ -420,7 +421,7 @@ def launch(
     summary = LaunchSummary(naive=sum(len(t.order) for t in trials))
     results: dict[int, TrialResult] = {}
 
-    with driver_session(cfg) as sink:
+    with _launch_lock(cfg, layout), driver_session(cfg) as sink:
         parent = layout.open(sink, cfg, rows, trials)
         summary.parent_run_id = parent
         progress = ProgressActor.remote() if layout.sweep is None else None
@@ -451,6 +452,19 @@ def launch(
         except StageFailed:
             pass
     return summary
+
+
+def _launch_lock(cfg: DictConfig, layout: Layout) -> KeyLock:
+    """One driver at a time per launch (the same ``gdwm run`` or sweep on one tracking store): a second one waits,
+    then finds every stage cached and continues the same runs. Different launches run side by side; the stages
+    they share are computed once (the per-key lock in the executor)."""
+    key = hashlib.sha256(f"{cfg.tracking.uri}\n{layout.launch_id}".encode()).hexdigest()
+
+    def waiting(owner: str) -> None:
+        console.print(f"another driver ({owner}) is running this {layout.launch_id.split(':')[0]} on this store; "
+                      "waiting for it to finish")  # fmt: skip
+
+    return KeyLock(Cache(cfg.cache.uri), "launch", key, on_wait=waiting)
 
 
 def _finish_trial(sink, layout: Layout, t: Trial, outcomes: dict[str, Outcome]) -> TrialResult:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import logging
 import time
 import uuid
@@ -10,6 +12,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 import ray
+from filelock import FileLock
 from mlflow import MlflowClient
 from mlflow.entities import Metric, Param, RunStatus, RunTag, ViewType
 from mlflow.exceptions import MlflowException
@@ -39,6 +42,31 @@ DEFAULT_SYSTEM_METRICS_INTERVAL_S = 10.0
 _PAGE = 1000
 
 
+def _one_writer(cls: type) -> type:
+    """Every public method (and the connection, which creates or migrates the schema) runs holding the store's
+    file lock when the store is a sqlite file: two drivers on one workdir never write it at once, and the second
+    to start finds the schema complete instead of racing the first one's migration."""
+
+    def locked(fn: Callable) -> Callable:
+        @functools.wraps(fn)
+        def wrapper(self, *args, **kwargs):
+            with self._store_lock():
+                return fn(self, *args, **kwargs)
+
+        return wrapper
+
+    for name, fn in list(vars(cls).items()):
+        if callable(fn) and (name == "_connect" or not name.startswith("_")):
+            setattr(cls, name, locked(fn))
+    return cls
+
+
+def sqlite_path(uri: str) -> str | None:
+    """The database file of a ``sqlite:///`` tracking URI; None for any other store."""
+    return uri.removeprefix("sqlite:///") if uri.startswith("sqlite:///") else None
+
+
+@_one_writer
 class TrackingBackend:
     """Wraps ``MlflowClient(uri)`` for one experiment; every MLflow write of gdwm goes through one of these."""
 
@@ -82,6 +110,13 @@ class TrackingBackend:
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self._connect()
+
+    def _store_lock(self) -> contextlib.AbstractContextManager:
+        if (db := sqlite_path(self.uri)) is None:
+            return contextlib.nullcontext()
+        if getattr(self, "_filelock", None) is None:
+            self._filelock = FileLock(f"{db}.lock")  # reentrant: a method may call another
+        return self._filelock
 
     def ready(self) -> str:
         """The experiment id (a cheap round trip that proves an actor started)."""

@@ -1,0 +1,115 @@
+"""The per-key lock (gdwm.keylock) and the sqlite store's one-writer lock, across real processes."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import socket
+import time
+from pathlib import Path
+
+import pytest
+
+from gdwm import keylock
+from gdwm.cache import Cache
+from gdwm.keylock import KeyLock
+from gdwm.tracking.backend import TrackingBackend
+
+KEY = "ab" * 32
+
+
+def _contend(root: str, log: str, barrier, rounds: int) -> None:
+    cache = Cache(root)
+    barrier.wait()
+    for _ in range(rounds):
+        with KeyLock(cache, "diffusion", KEY):
+            with open(log, "a") as f:
+                f.write("enter\n")
+            time.sleep(0.02)
+            with open(log, "a") as f:
+                f.write("leave\n")
+
+
+def test_processes_never_hold_one_key_together(tmp_path, monkeypatch):
+    monkeypatch.setattr(keylock, "POLL_S", 0.02)  # forked children inherit it
+    ctx = mp.get_context("fork")
+    barrier = ctx.Barrier(4)
+    log = tmp_path / "log"
+    procs = [ctx.Process(target=_contend, args=(str(tmp_path / "c"), str(log), barrier, 3)) for _ in range(4)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(120)
+    assert [p.exitcode for p in procs] == [0, 0, 0, 0]
+    lines = log.read_text().split()
+    assert len(lines) == 24
+    assert lines == ["enter", "leave"] * 12  # never two holders between an enter and its leave
+    assert list((tmp_path / "c" / ".locks" / "diffusion" / KEY).iterdir()) == []  # every claim released
+
+
+def _claim(root: Path, owner: str, beat: float) -> Path:
+    d = root / ".locks" / "lora" / KEY
+    d.mkdir(parents=True, exist_ok=True)
+    p = d / "00000000000000000001-deadclaim.json"
+    p.write_text(json.dumps({"owner": owner, "beat": beat}))
+    return p
+
+
+def test_a_dead_holder_on_this_host_is_taken_over_at_once(tmp_path):
+    proc = mp.get_context("fork").Process(target=time.sleep, args=(0,))
+    proc.start()
+    proc.join()
+    stale = _claim(tmp_path, f"{socket.gethostname()}:{proc.pid}:1.00", time.time())
+    seen = []
+    t0 = time.monotonic()
+    with KeyLock(Cache(tmp_path), "lora", KEY, on_wait=seen.append):
+        assert not stale.exists()
+    assert seen == [] and time.monotonic() - t0 < 5
+
+
+def test_a_holder_elsewhere_blocks_until_its_beat_goes_stale(tmp_path, monkeypatch):
+    monkeypatch.setattr(keylock, "STALE_S", 1.5)
+    other = _claim(tmp_path, "node-7:4242:1718000000.00", time.time())
+    seen = []
+    t0 = time.monotonic()
+    with KeyLock(Cache(tmp_path), "lora", KEY, on_wait=seen.append) as lock:
+        waited = time.monotonic() - t0
+        assert not other.exists()
+    assert seen == ["node-7:4242:1718000000.00"]  # told once who it waited for
+    assert 1.0 < waited < 10 and lock.waited == pytest.approx(waited, abs=0.5)
+
+
+def test_scope_and_key_are_checked_like_cache_entries(tmp_path):
+    with pytest.raises(ValueError, match=r"stage name '\.\./x'"):
+        KeyLock(Cache(tmp_path), "../x", KEY)
+    with pytest.raises(ValueError, match="is not a sha256 hex digest"):
+        KeyLock(Cache(tmp_path), "lora", "../../etc")
+
+
+def _open_store(uri: str, barrier, out) -> None:
+    barrier.wait()
+    try:
+        b = TrackingBackend(uri, "gdwm")
+        run = b.create_run("r", {"k": "v"})
+        b.end_run(run)
+        out.put("ok")
+    except Exception as e:  # reported to the test, which names it
+        out.put(f"{type(e).__name__}: {e}")
+
+
+@pytest.mark.slow  # ~40 s on 2 cores: three schema creations in a row
+def test_drivers_initialising_one_fresh_sqlite_store_together_both_succeed(tmp_path):
+    # Without the store's file lock this fails most times: "duplicate column name: step" or
+    # "Online migration expected to match one row" from the racing alembic migrations.
+    ctx = mp.get_context("fork")
+    n = 3
+    barrier, out = ctx.Barrier(n), ctx.Queue()
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    procs = [ctx.Process(target=_open_store, args=(uri, barrier, out)) for _ in range(n)]
+    for p in procs:
+        p.start()
+    results = [out.get(timeout=180) for _ in range(n)]
+    for p in procs:
+        p.join(30)
+    assert results == ["ok"] * n
+    assert len(TrackingBackend(uri, "gdwm").search_runs("tags.k = 'v'")) == n
