@@ -17,5 +17,8 @@ class DatasetConfig:
     """Dotted path of ``build(cfg, root, source, overwrite) -> Path`` that produces this dataset."""
     needs_source: bool = True
     """Whether ``build`` reads an input directory (``source=``); one that does not is generated on demand."""
+    planner: str | None = None
+    """Dotted path of ``plan(cfg) -> list[str]``: checks the ``data.*`` keys and returns the scene ids ``build``
+    would write, writing nothing (a dry run's plan; a bad key is exit 2 before anything is generated)."""
     summarizer: str = "pipelines.data.summary.summarize"
     """Dotted path of ``summarize(root) -> dict`` used by ``gdwm data info``."""

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -21,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
 from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config
+from gdwm.errors import one_line
 from gdwm.redact import redact, redact_config
 from gdwm.term import console, err_console, print_dataset_summary
 
@@ -161,7 +164,6 @@ def ui_url(cfg: DictConfig) -> str:
 
 def _ui(cfg: DictConfig, _args: list[str]) -> int:
     """``mlflow server`` on the configured store in the foreground; Ctrl-C (or SIGTERM) stops it, exit 0."""
-    import signal
     import subprocess
 
     cmd = [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", cfg.tracking.uri, "--workers", "1"]
@@ -397,6 +399,10 @@ def _join_options(args: list[str], options: tuple[str, ...]) -> tuple[list[str],
     return out, None
 
 
+def _terminated(signum: int, _frame) -> None:
+    raise SystemExit(128 + signum)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     _load_plugin_commands()
@@ -444,17 +450,23 @@ def main(argv: list[str] | None = None) -> int:
         err_console.print(f"gdwm: config error: {e}", markup=False)
         return 2
     name = f"{command} {sub}".strip()
+    main_thread = threading.current_thread() is threading.main_thread()
+    # SIGTERM unwinds like Ctrl-C: temp directories and open runs are cleaned up on the way out (exit 143)
+    previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
     try:
         return int(spec.run(cfg, overrides) or 0)
-    except (CommandError, ValueError, OSError) as e:
-        # Data and I/O errors carry a message naming the file/scene/key; GDWM_DEBUG=1 shows the traceback.
+    except Exception as e:
+        # One line naming the file, scene, key, stage or actor (gdwm.errors); GDWM_DEBUG=1 shows the traceback.
         if os.environ.get("GDWM_DEBUG"):
             raise
-        err_console.print(f"gdwm {name}: {type(e).__name__}: {e}", markup=False)
+        err_console.print(f"gdwm {name}: {redact(one_line(e))}", markup=False)
         return 1
     except KeyboardInterrupt:
         err_console.print(f"gdwm {name}: interrupted", markup=False)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -310,6 +310,15 @@ def load_config(overrides: list[str] | tuple[str, ...] = (), config_name: str = 
         OmegaConf.resolve(cfg)
     except (HydraException, OmegaConfBaseException) as e:
         raise ConfigError(explain(e)) from e
+    except ValueError as e:  # hydra's own ValueErrors, e.g. `cluster=null` for a config group
+        nulled = [
+            o.split("=", 1)[0] for o in overrides if o.endswith(("=null", "=None")) and "." not in o.split("=")[0]
+        ]
+        groups = [g for g in nulled if group_options(g.lstrip("+~"))]
+        if not groups:
+            raise ConfigError(str(e)) from e
+        g = groups[0].lstrip("+~")
+        raise ConfigError(f"{g}=null: {g} is a config group; choose one of {', '.join(group_options(g))}") from e
     return cfg
 
 

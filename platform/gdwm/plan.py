@@ -105,6 +105,8 @@ class Trial:
     plan: list[PlanRow] = field(default_factory=list)
     settings: dict[str, Any] = field(default_factory=dict)
     """RunEnv fields of this trial's config (all but sink, parent run and progress)."""
+    pending_data: str | None = None
+    """A dry run's note that the dataset does not exist yet and would be generated (nothing is cached then)."""
     run_id: str | None = None
 
     @property
@@ -199,6 +201,7 @@ def compose(
     cfg: DictConfig | None = None,
     *,
     name_rows: bool = False,
+    dry_run: bool = False,
 ) -> None:
     """Compose, validate and plan every trial: ``overrides`` (the command's), the row's, then ``seed=N``.
 
@@ -225,7 +228,9 @@ def compose(
             if not name_rows:  # gdwm run reports them as it always has: a pipeline error (2), a zoo error (1)
                 raise
             raise PlanError(f"{here}: {e}") from e
-        t.settings = env_settings(t.cfg, ensure_data(t.cfg))
+        meta = ensure_data(t.cfg, dry_run)
+        t.settings = env_settings(t.cfg, meta)
+        t.pending_data = meta.get("pending")
         t.settings |= code_settings(t.cfg, t.pipe, t.order, here)
         entries = seen.setdefault(t.settings["cache_uri"], _Entries(Cache(t.settings["cache_uri"])))
         t.plan, t.keys = plan_keys(t.pipe, t.order, t.cfg, t.env(), entries)
@@ -270,12 +275,35 @@ def read_dataset_meta(root: Path) -> dict:
     return json.loads(meta.read_text())
 
 
-def ensure_data(cfg: DictConfig) -> dict:
+PENDING_DATA = "not-generated-yet"
+"""The data fingerprint a dry run plans with while the dataset does not exist: no cache entry can match it."""
+
+
+def planned_scenes(cfg: DictConfig) -> list[str] | None:
+    """The scenes the dataset's builder would write (its ``data.planner``: the ``data.*`` keys checked, nothing
+    written); None when the dataset has no planner. A bad key is a ``PlanError`` naming it (exit 2)."""
+    if not cfg.data.get("planner"):
+        return None
+    from hydra.utils import get_method
+
+    try:
+        return list(get_method(cfg.data.planner)(cfg.data))
+    except ValueError as e:  # the builders' DataError: the message names data.<key>
+        raise PlanError(f"data={cfg.data.name}: {e}") from e
+
+
+def ensure_data(cfg: DictConfig, dry_run: bool = False) -> dict:
     """The dataset's meta, verified (``gdwm.datasets.check_dataset``); a dataset that needs no source (synthetic) is
-    generated first if absent."""
+    generated first if absent. A dry run generates nothing: it plans with the scenes the builder would write and
+    ``PENDING_DATA`` as the fingerprint (so every stage is to run), and says so under ``pending``."""
     root = Path(cfg.data.root)
+    scenes = planned_scenes(cfg)  # checked before anything exists or is generated
     if not (root / "dataset.json").is_file():
         if cfg.source is None and not cfg.data.needs_source:
+            if dry_run:
+                n = f"{len(scenes)} scenes" if scenes is not None else "its scenes"
+                return {"fingerprint": PENDING_DATA, "scenes": scenes or [],
+                        "pending": f"would generate {cfg.data.name} ({n}) at {root}"}  # fmt: skip
             from gdwm.datasets import build_dataset
             from gdwm.term import console
 

@@ -4,6 +4,7 @@ GDWM_TEST_DIR      every execution appends "<stage> <scene>" to executions.log h
 GDWM_TEST_KILL     "stage:scene" (or "stage:step=N" for training) — SIGKILL the worker once (marker file)
 GDWM_TEST_FAIL     "stage:scene" — raise ValueError in that scene ("stage:seed=N": in that trial seed's execution)
 GDWM_TEST_BLOCK    "stage" or "stage:step=N" — wait until GDWM_TEST_DIR/release exists (a test kills the driver)
+GDWM_TEST_FILL     "stage:PATH" — the stage fills the disk of PATH: writes PATH until no space is left, and leaves it
 """
 
 from __future__ import annotations
@@ -48,6 +49,25 @@ def _inject(ctx: StageContext) -> None:
         raise ValueError(f"injected failure in {os.environ['GDWM_TEST_FAIL']}")
     if os.environ.get("GDWM_TEST_BLOCK") == ctx.name:
         _block(ctx.name)
+    fill, _, path = os.environ.get("GDWM_TEST_FILL", "").partition(":")
+    if fill == ctx.name and _once("fill"):
+        _fill(Path(path))
+
+
+def _fill(path: Path) -> None:
+    chunk = b"\0" * (1 << 16)
+    with open(path, "wb", buffering=0) as f:
+        try:
+            while True:
+                f.write(chunk)
+        except OSError:
+            pass
+    with open(path, "ab", buffering=0) as f:  # the last few bytes too
+        try:
+            while True:
+                f.write(b"\0")
+        except OSError:
+            pass
 
 
 def _block(name: str) -> None:

@@ -22,6 +22,8 @@ class SynthConfig(DatasetConfig):
     """Dotted path of the generator."""
     needs_source: bool = False
     """Generated from the seed: no input directory, so `gdwm run` makes it when absent."""
+    planner: str | None = "pipelines.data.synth.config.planned_scenes"
+    """Checks the keys and names the scenes without generating anything (``gdwm run --dry-run``)."""
     num_scenes: int = 4
     """Scenes to generate (``scene-0000`` ...)."""
     num_frames: int = 10
@@ -71,6 +73,13 @@ class SynthConfig(DatasetConfig):
 def _check(ok: bool, key: str, rule: str, value: Any) -> None:
     if not ok:
         raise DataError(f"data.{key} must be {rule}, got {value!r}")
+
+
+def planned_scenes(cfg: Any) -> list[str]:
+    """The scene ids ``build`` writes for ``cfg`` (``scene-0000`` ...), after the same checks; writes nothing."""
+    cfg = coerce_config(cfg)
+    validate(cfg)
+    return [f"scene-{i:04d}" for i in range(cfg.num_scenes)]
 
 
 def coerce_config(cfg: Any) -> SynthConfig:

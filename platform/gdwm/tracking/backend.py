@@ -22,6 +22,7 @@ from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID
 from ray.actor import ActorHandle
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
+from gdwm.errors import one_line
 from gdwm.redact import redact
 from gdwm.tracking.owner import OWNER_TAG, RECONCILED_TAG, owner_is_alive, process_owner
 from gdwm.tracking.params import (
@@ -282,10 +283,17 @@ TrackingActor = ray.remote(num_cpus=0, max_concurrency=1)(TrackingBackend)
 Sink = TrackingBackend | ActorHandle
 
 
+class TrackingError(RuntimeError):
+    """The tracking store cannot be reached or its actor died; the message is one line naming it."""
+
+
 def call(sink: Sink, method: str, *args, **kwargs) -> Any:
     """``sink.method(*args)`` on a backend, or the same on the actor, waiting for its result."""
     if isinstance(sink, ActorHandle):
-        return ray.get(getattr(sink, method).remote(*args, **kwargs))
+        try:
+            return ray.get(getattr(sink, method).remote(*args, **kwargs))
+        except ray.exceptions.RayError as e:  # the actor died, or the store refused the write (a full disk...)
+            raise TrackingError(f"tracking store write failed: {one_line(e)}") from e
     return getattr(sink, method)(*args, **kwargs)
 
 
@@ -313,7 +321,10 @@ def open_tracking(cfg_tracking: Any, owner_tags: Mapping[str, str] | None = None
         )
     here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
     actor = TrackingActor.options(name=f"gdwm-tracking-{uuid.uuid4().hex[:12]}", scheduling_strategy=here).remote(*args)
-    ray.get(actor.ready.remote())
+    try:
+        ray.get(actor.ready.remote())
+    except ray.exceptions.RayActorError as e:
+        raise TrackingError(f"tracking.uri={redact(cfg_tracking.uri)}: {one_line(e)}") from e
     closed = []
 
     def close() -> None:

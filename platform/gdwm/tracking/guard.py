@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import logging
+import os
 import signal
+import sys
 import threading
 import traceback
 from types import FrameType, TracebackType
 
-from gdwm.tracking.backend import Sink, call
+from gdwm.errors import one_line
+from gdwm.tracking.backend import Sink, TrackingError, call
 from gdwm.tracking.tracker import Tracker
 
 log = logging.getLogger(__name__)
@@ -79,7 +82,9 @@ class RunGuard:
         try:
             self.tracker.flush()
         except Exception:
-            log.exception("run %s: queued tracking calls failed while the run was failing", self.run_id)
+            # one line: the error that ends the run is what the user must see (GDWM_DEBUG=1: the traceback)
+            log.warning("run %s: queued tracking calls failed while the run was failing: %s", self.run_id,
+                        one_line(sys.exc_info()[1]), exc_info=bool(os.environ.get("GDWM_DEBUG")))  # fmt: skip
 
     def _end(self, status: str, error_text: str | None) -> None:
         """End the run once; never masks the exception that is ending it."""
@@ -91,4 +96,7 @@ class RunGuard:
                 call(self.sink, "log_text", self.run_id, error_text, "error.txt")
             call(self.sink, "end_run", self.run_id, status)
         except Exception:
-            log.exception("run %s: could not end it %s", self.run_id, status)
+            # A store that can't be written (TrackingError) is reported once, by the driver; anything else here.
+            level = logging.INFO if isinstance(sys.exc_info()[1], TrackingError) else logging.WARNING
+            log.log(level, "run %s: could not end it %s (%s); the next gdwm run on this store ends it", self.run_id,
+                    status, one_line(sys.exc_info()[1]), exc_info=bool(os.environ.get("GDWM_DEBUG")))  # fmt: skip

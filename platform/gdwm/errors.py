@@ -1,0 +1,69 @@
+"""Every failure the CLI reports is one line (``GDWM_DEBUG=1`` shows the traceback): this names what failed.
+
+Ray wraps what went wrong inside a task or actor in its own exceptions, whose text is a remote traceback with
+terminal colours; ``one_line`` digs out the original error and the task or actor it happened in.
+"""
+
+from __future__ import annotations
+
+import re
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+_WHERE = re.compile(r"ray::([\w.\-]+(?::[\w.]+\(\))?)")
+_ACTORS = {
+    "TrackingBackend": "the tracking actor",
+    "ProgressBoard": "the progress actor",
+    "SceneWorker": "a scene worker",
+}
+
+
+def _last_error_line(text: str) -> str:
+    """The ``Type: message`` line a Python traceback ends with (else the text's first line)."""
+    lines = [ln.rstrip() for ln in _ANSI.sub("", text).splitlines() if ln.strip()]
+    for ln in reversed(lines):
+        if not ln.startswith((" ", "\t")) and re.match(r"^[A-Za-z_][\w.]*(Error|Exception|Exit|Interrupt)\b", ln):
+            return ln
+    return lines[0] if lines else ""
+
+
+def _where(text: str) -> str:
+    """``the tracking actor (TrackingBackend.__init__)`` / ``task run_stage()`` from a Ray error's text."""
+    m = _WHERE.search(_ANSI.sub("", text))
+    if not m:
+        return ""
+    name = m.group(1).removesuffix("()")
+    for cls, label in _ACTORS.items():
+        if f":{cls}." in name or name.startswith(f"{cls}."):
+            return f"{label} ({name.split(':', 1)[-1]})"
+    return f"Ray task {name}"
+
+
+def one_line(e: BaseException) -> str:
+    """``Type: message`` of ``e``, or for a Ray error the original error and where it was raised; a ``gdwm_hint``
+    attached on the way out (what became of the runs, say) is appended."""
+    hint = getattr(e, "gdwm_hint", None)
+    return f"{_one_line(e)}; {hint}" if hint else _one_line(e)
+
+
+def _one_line(e: BaseException) -> str:
+    try:
+        import ray.exceptions as rex
+    except ImportError:  # pragma: no cover - ray is a dependency
+        rex = None
+    if rex is not None and isinstance(e, rex.RayError):
+        if isinstance(e, rex.RayTaskError):
+            cause = e.cause if isinstance(e.cause, BaseException) else None
+            what = one_line(cause) if cause is not None else _last_error_line(str(e))
+            where = _where(str(e))
+        elif isinstance(e, rex.RayActorError):
+            text = getattr(e, "error_msg", "") or str(e)
+            where = _where(text) or "an actor"
+            if getattr(e, "_actor_init_failed", False):
+                return f"{where} failed to start: {_last_error_line(text)}"
+            what = _last_error_line(text) or "it died"
+            return f"{where} died: {what}"
+        else:
+            what, where = _last_error_line(str(e)), ""
+        return f"{what} (in {where})" if where else what
+    msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
+    return f"{type(e).__name__}: {msg}" if msg else type(e).__name__

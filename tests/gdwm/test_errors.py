@@ -1,0 +1,119 @@
+"""Every failure is one line without GDWM_DEBUG: Ray's wrapped errors, a dead tracking actor, a config group set to
+null, a disk that fills mid-run (its runs ended by the next run)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import uuid
+from collections import Counter
+from pathlib import Path
+
+import pytest
+import ray
+
+from gdwm.errors import one_line
+from gdwm.tracking import open_tracking
+from gdwm.tracking.backend import TrackingError
+from tests.gdwm.test_run import Toy
+
+
+@ray.remote
+def _fails():
+    raise KeyError("scene-0007")
+
+
+@ray.remote
+class _Broken:
+    def __init__(self):
+        raise FileNotFoundError(2, "No such file or directory", "/nope/x")
+
+    def ready(self):
+        return 1
+
+
+def test_ray_errors_become_the_original_error_and_where(ray_local):
+    with pytest.raises(ray.exceptions.RayTaskError) as task:
+        ray.get(_fails.remote())
+    assert one_line(task.value) == "KeyError: 'scene-0007' (in Ray task _fails)"
+    with pytest.raises(ray.exceptions.ActorDiedError) as actor:
+        ray.get(_Broken.remote().ready.remote())
+    assert one_line(actor.value) == (
+        "Ray task _Broken.__init__ failed to start: FileNotFoundError: [Errno 2] No such file or directory: '/nope/x'"
+    )
+    multi = ValueError("first line\nsecond line")
+    multi.gdwm_hint = "runs ended"
+    assert one_line(multi) == "ValueError: first line; runs ended"
+
+
+def test_a_tracking_actor_that_cannot_start_is_one_line_naming_the_store(ray_local):
+    class Cfg:
+        uri = "sqlite:////proc/nope/mlflow.db"
+        experiment = "gdwm"
+        artifact_location = None
+        single_writer = True
+
+    with pytest.raises(TrackingError) as e:
+        open_tracking(Cfg())
+    assert str(e.value) == (
+        "tracking.uri=sqlite:////proc/nope/mlflow.db: the tracking actor (TrackingBackend.__init__) failed to start: "
+        "FileNotFoundError: [Errno 2] No such file or directory: '/proc/nope'"
+    )
+
+
+def test_a_config_group_set_to_null_is_exit_2_naming_it(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "gdwm", "run", "cluster=null", f"workdir={tmp_path}"],
+                       capture_output=True, text=True)  # fmt: skip
+    assert r.returncode == 2
+    want = "gdwm: config error: cluster=null: cluster is a config group; choose one of a100x16, local"
+    assert r.stderr.strip() == want
+
+
+@pytest.mark.slow  # a real run; the test above checks the same message in-process
+def test_a_store_that_cannot_be_opened_is_one_line_exit_1(tmp_path):
+    toy = Toy(tmp_path)
+    r = toy.run("tracking.uri=sqlite:////proc/nope/mlflow.db")
+    assert r.returncode == 1
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith("gdwm")]
+    assert lines == [
+        "gdwm run: TrackingError: tracking.uri=sqlite:////proc/nope/mlflow.db: the tracking actor "
+        "(TrackingBackend.__init__) failed to start: "
+        "FileNotFoundError: [Errno 2] No such file or directory: '/proc/nope'"
+    ]
+    assert "Traceback" not in r.stderr
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 3 MiB tmpfs (root and mount(8) needed: skipped elsewhere, CI included)."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    if (
+        shutil.which("mount") is None
+        or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mnt)], capture_output=True).returncode
+    ):
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    yield mnt
+    subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+@pytest.mark.slow  # two real runs
+def test_a_disk_that_fills_mid_run(small_disk, tmp_path):
+    toy = Toy(tmp_path / "t")
+    toy.work = small_disk / "w"
+    hog = small_disk / f"hog-{uuid.uuid4().hex[:6]}"
+    r = toy.run(GDWM_TEST_FILL=f"evaluate_qa:{hog}")
+    assert r.returncode == 1
+    err = [ln for ln in r.stderr.splitlines() if not ln.startswith(("20", "(", " "))]
+    assert len(err) == 1 and "Traceback" not in r.stderr, r.stderr[-3000:]
+    assert err[0].startswith("gdwm run: TrackingError: tracking store write failed: ")
+    assert "database or disk is full" in err[0] or "No space left on device" in err[0]
+    assert err[0].endswith("its runs stay RUNNING until the next gdwm run or sweep on this store ends them")
+    hog.unlink()  # space again: the next run ends what was left RUNNING, then finishes the work
+    (toy.root / "executions.log").write_text("")
+    r = toy.run()
+    assert r.returncode == 0, r.stderr[-3000:]
+    statuses = Counter(x.info.status for x in toy.runs() + toy.runs("run"))
+    assert "RUNNING" not in statuses and statuses["FINISHED"] >= 7
+    assert Path(toy.root / "executions.log").read_text().split()[0] in ("evaluate_qa", "evaluate_gen")
