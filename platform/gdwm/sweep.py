@@ -61,7 +61,19 @@ def plan_sweep(cfg: DictConfig, argv: list[str], dry_run: bool = False) -> tuple
     trials = [Trial(r, s) for r in rows for s in r.seeds]
     base = ([f"targets=[{','.join(sweep.targets)}]"] if sweep.targets else []) + list(sweep.overrides)
     compose(trials, [*base, *user_overrides(argv)], where, name_rows=True, dry_run=dry_run)
+    check_distinct_rows(where, trials)
     return sweep, rows, trials
+
+
+def check_distinct_rows(where: str, trials: list[Trial]) -> None:
+    """Two rows whose trials resolve to the same stage keys are one model under two labels (a copy-paste row):
+    its numbers would be printed twice, as if they were two results."""
+    seen: dict[tuple, Trial] = {}
+    for t in trials:
+        first = seen.setdefault((t.seed, tuple(sorted(t.keys.items()))), t)
+        if first.row is not t.row:
+            raise SweepError(f"{where}: rows '{first.label}' and '{t.label}' resolve to the same stage keys (one "
+                             "model under two labels); make their overrides differ or drop one")  # fmt: skip
 
 
 def run_sweep(cfg: DictConfig, argv: list[str], dry_run: bool = False) -> LaunchSummary:

@@ -203,3 +203,14 @@ def test_bad_seeds_exit_2_naming_the_key(tmp_path, args, message):
     assert r.returncode == 2, r.stderr[-2000:]
     assert message in r.stderr
     assert not (tmp_path / "executions.log").exists()
+
+
+def test_rows_resolving_to_the_same_stage_keys_exit_2_naming_both(tmp_path):
+    toy = Toy(tmp_path)
+    r = _sweep(toy, "sweep=toy_duplicate_rows", "--dry-run")
+    assert r.returncode == 2
+    assert (
+        "sweep 'toy_duplicate_rows': rows 'rank 4' and 'rank four again' resolve to the same stage keys (one model "
+        "under two labels); make their overrides differ or drop one"
+    ) in " ".join(r.stderr.split())
+    assert not (toy.work / "mlflow.db").exists()
