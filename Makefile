@@ -20,6 +20,8 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev]'
 	@# The report's browser test drives the system chromium (no browser download); never fails the setup.
 	command -v chromium >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && { apt-get install -y -qq --no-install-recommends chromium || { apt-get update -qq && apt-get install -y -qq --no-install-recommends chromium; }; } || echo "chromium not installed: the browser test will skip"; }
+	@# Official BLEU/ROUGE-L/CIDEr tokenize with pycocoevalcap's PTBTokenizer (Java); never fails the setup.
+	command -v java >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && { apt-get install -y -qq --no-install-recommends default-jre-headless || { apt-get update -qq && apt-get install -y -qq --no-install-recommends default-jre-headless; }; } || echo "java not installed: text metrics use the fallback tokenizer, labelled approximate"; }
 	touch $(STAMP)
 
 setup: $(STAMP) ## create .venv and install gdwm with dev tools

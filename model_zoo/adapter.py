@@ -7,7 +7,9 @@ tokens into ``K_f`` world tokens:
 * ``fine_adapter/query_xattn`` (journal): ``K_f`` learned queries modulated by the pooled text embedding attend to
   the candidates (Eq. q~_j, Eq. z_j).
 * ``fine_adapter/similarity`` (conference version): the ``K_f`` candidates most cosine-similar to the pooled text.
-* ``fine_adapter/identity`` (conference rows Random / Top-K+Uniform, where ``K_c == K_f``): the first ``K_f``.
+* ``fine_adapter/identity`` (conference rows Random / Top-K+Uniform): the ``K_c == K_f`` candidates unchanged; any
+  other ``K_c`` is refused (a config error when composed, a ``ValueError`` here), since keeping the first ``K_f``
+  would drop what the selector ranked last (the uniform branch of ``topk_uniform``).
 
 Every fine adapter: ``forward(g_BKH, mask_BK, text_BLH, text_mask_BL) -> (z_BFH, z_mask_BF)``.
 
@@ -172,7 +174,7 @@ class QueryCrossAttentionAdapter(nn.Module):
 
 
 class IdentityAdapter(nn.Module):
-    """The first ``K_f`` candidates unchanged (``z_mask = mask[:, :K_f]``), right-padded when ``K < K_f``."""
+    """The candidates unchanged as the world tokens; there must be exactly ``K_f`` of them (``K_c == K_f``)."""
 
     def __init__(self, k_f: int) -> None:
         super().__init__()
@@ -182,7 +184,12 @@ class IdentityAdapter(nn.Module):
         self, g_BKH: torch.Tensor, mask_BK: torch.Tensor, text_BLH: torch.Tensor, text_mask_BL: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         _check_inputs("fine_adapter/identity", g_BKH, mask_BK, text_BLH)
-        return _pad_tokens(g_BKH[:, : self.k_f], mask_BK[:, : self.k_f], self.k_f)
+        if g_BKH.shape[1] != self.k_f:
+            raise ValueError(
+                f"fine_adapter/identity: got K_c={g_BKH.shape[1]} candidates for K_f={self.k_f} world tokens; "
+                f"model.selector.k_c must equal model.fine_adapter.k_f"
+            )
+        return g_BKH, mask_BK
 
 
 def _checked(cfg: FineAdapterConfig | None, name: str) -> FineAdapterConfig:
@@ -207,5 +214,5 @@ def build_query_xattn(cfg: FineAdapterConfig | None = None, hidden: int = 64) ->
 
 @register("fine_adapter", "identity")
 def build_identity(cfg: FineAdapterConfig | None = None, hidden: int = 64) -> IdentityAdapter:
-    """Pass-through of the first K_f candidates; ``hidden`` is unused."""
+    """Pass-through of the K_c == K_f candidates; ``hidden`` is unused."""
     return IdentityAdapter(_checked(cfg, "identity").k_f)

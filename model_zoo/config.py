@@ -8,9 +8,25 @@ command, before anything runs) never imports torch, transformers or diffusers.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 ATTRIBUTES: tuple[str, ...] = ("x", "s", "r", "o", "f")
 """Gaussian attributes of the attribute-aware projection: position, scale, rotation, opacity, feature."""
+
+
+class PathSource(StrEnum):
+    """Where the driving-aware selector's ego path P_traj comes from (``model.selector.path``).
+
+    Leakage policy: the path is what the ego knows when it answers, never what it later did. ``route`` is the
+    planned route it follows (navigation: the map's lane or road centreline, recorded by the dataset, not derived
+    from the ego's motion), placed by the current ego pose only; ``extrapolated`` is the past ego positions carried
+    on at the last step's velocity. Neither reads a recorded pose after the current frame, so the planning and
+    trajectory answers cannot leak into the selection (``pipelines.understanding.data.FrameStore.selector_path``
+    slices the poses to the current frame before building either).
+    """
+
+    route = "route"
+    extrapolated = "extrapolated"
 
 
 @dataclass
@@ -37,6 +53,11 @@ class SelectorConfig:
     """Seed of the random variants when the caller passes no generator (gdwm's YAML sets it to the trial seed)."""
     coverage_first: bool = True
     """voxel_topk/driving_aware: on truncation keep VoxelTopK before TopK (False: top K_c of the union by score)."""
+    path: PathSource = PathSource.route
+    """driving_aware: the ego path of T_i: the planned ``route`` ahead of the ego (the paper's path ahead), or the
+    past positions ``extrapolated`` at constant velocity. Never the recorded future poses (see ``PathSource``)."""
+    route_ahead_m: float = 30.0
+    """driving_aware with ``path=route``: metres of the route ahead of the ego that become waypoints (1 m apart)."""
 
     def __post_init__(self) -> None:
         checks = [
@@ -49,10 +70,17 @@ class SelectorConfig:
             ),
             (self.w_q >= 0 and self.w_t >= 0 and self.w_q + self.w_t > 0, self._weights_msg()),
             (self.sigma_traj > 0, f"sigma_traj must be > 0 metres, got {self.sigma_traj}"),
+            (self.route_ahead_m > 0, f"route_ahead_m must be > 0 metres, got {self.route_ahead_m}"),
         ]
         for ok, msg in checks:
             if not ok:
                 raise ValueError(f"SelectorConfig '{self.name}': {msg}")
+        try:
+            self.path = PathSource(self.path)
+        except ValueError:
+            raise ValueError(
+                f"SelectorConfig '{self.name}': path must be one of {[p.value for p in PathSource]}, got {self.path!r}"
+            ) from None
 
     def _weights_msg(self) -> str:
         return f"w_q and w_t must be >= 0 with w_q + w_t > 0, got w_q={self.w_q}, w_t={self.w_t}"
@@ -90,6 +118,31 @@ class FineAdapterConfig:
     """World tokens K_f per sample."""
     heads: int = 4
     """Attention heads of query_xattn (must divide H)."""
+
+
+def identity_adapter_name(k_c: int, k_f: int) -> str:
+    """``name`` of ``conf/model/fine_adapter/identity.yaml``, resolved when the config is composed: the identity adapter
+    hands the K_c coarse candidates to the LLM as they are, so K_c must equal K_f (a larger K_c would keep only the
+    first K_f, silently dropping whatever the selector ranked last, such as a uniform branch)."""
+    if int(k_c) != int(k_f):
+        raise ValueError(
+            f"model/fine_adapter=identity passes the coarse candidates through as the world tokens, so "
+            f"model.selector.k_c ({k_c}) must equal model.fine_adapter.k_f ({k_f}); set model.selector.k_c={k_f} "
+            f"or choose another fine adapter"
+        )
+    return "identity"
+
+
+RESOLVERS = {"gdwm_identity_adapter": identity_adapter_name}
+"""OmegaConf resolvers of the model configs (registered by the ``pipelines`` plugin before anything composes)."""
+
+
+def register_resolvers() -> None:
+    from omegaconf import OmegaConf  # only where configs are composed
+
+    for name, fn in RESOLVERS.items():
+        if not OmegaConf.has_resolver(name):
+            OmegaConf.register_new_resolver(name, fn)
 
 
 @dataclass
@@ -148,7 +201,9 @@ class DiffusionConfig:
     cross_attention_dim: int = 64
     """Width of C_L (the LLM hidden size); a loaded UNet with another width gets a learned projection."""
     low_level: bool = True
-    """Ablation switch: C_I, C_D enter the UNet input (False: zeros in their channels and in the mask)."""
+    """Ablation switch: C_I, C_D enter the UNet input (False: zeros in their channels and in the mask). The reference
+    latent d_ref is not a low-level condition and stays on: the paper's low-level conditions are C_I and C_D (the
+    Gaussians projected into the target view) and F_theta takes d_ref as an input of its own beside them."""
     high_level: bool = True
     """Ablation switch: C_L enters through cross-attention (False: the learned null token always)."""
     cond_dropout: float = 0.1

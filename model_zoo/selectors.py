@@ -8,6 +8,10 @@ grid cells. Ties in any ranking go to the lower Gaussian index, so every selecto
 Variants (``registry.build("selector", name, SelectorConfig(...))``): ``random``, ``topk_uniform`` and
 ``topk_uniform_similarity`` (conference version), ``voxel_topk`` (quality only) and ``driving_aware`` (the paper's).
 
+The ego path P_traj of T_i (``SelectorConfig.path``): ``route`` waypoints come from ``route_path`` (the planned
+route ahead of the ego), ``extrapolated`` ones from the past poses; the caller hands neither a recorded future pose
+(the leakage policy of ``model_zoo.config.PathSource``).
+
 Union rule of Eq. C: read literally, the top K_c of ``TopK(S, K_c) ∪ VoxelTopK(S, K_c)`` by S is ``TopK(S, K_c)``
 whenever N >= K_c, so the voxel branch would never survive. By default (``coverage_first``) the VoxelTopK members are
 kept first and TopK fills the remaining slots: every occupied voxel is covered when ``K_c >= V``, and the result is
@@ -55,7 +59,8 @@ class SelectorInputs:
     opacity: torch.Tensor
     """[N] opacity as a probability in [0, 1] (already sigma(o_i), not a logit)."""
     trajectory: torch.Tensor | None = None
-    """[T, 2] future ego path as ground-plane waypoints (x, y); None or T = 0 means no trajectory prior."""
+    """[T, 2] ego path ahead as ground-plane waypoints (x, y): the planned route or the extrapolated past
+    (``SelectorConfig.path``), never the recorded future; None or T = 0 means no trajectory prior."""
     similarity: torch.Tensor | None = None
     """[N] text-Gaussian similarity; only topk_uniform_similarity reads it."""
 
@@ -148,6 +153,39 @@ def trajectory_distance(xyz_N3: torch.Tensor, trajectory_T2: torch.Tensor | None
             else:
                 torch.minimum(best, dx, out=best)
     return best_N.sqrt_()
+
+
+def route_path(route_P2: np.ndarray, ego2world_44: np.ndarray, ahead_m: float, step_m: float = 1.0) -> np.ndarray:
+    """P_traj for ``path=route``: ``[T, 2]`` waypoints every ``step_m`` metres along the planned route, from the
+    ego's projection onto it up to ``ahead_m`` metres ahead, in the ego frame (x forward, y left).
+
+    ``route_P2`` is the route as a world-frame ground-plane polyline in driving order (navigation: a lane or road
+    centreline, from the map, not from the ego's motion). The waypoints are shifted sideways by the ego's own offset
+    from the route, so they run through the ego and follow the road in its current lane. Only the current pose
+    ``ego2world_44`` places the route: nothing the ego does later enters.
+    """
+    pts = np.asarray(route_P2, dtype=np.float64).reshape(-1, 2)
+    if len(pts) >= 2:
+        pts = pts[np.r_[True, np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1e-9]]  # no zero-length segments
+    if len(pts) < 2 or not np.isfinite(pts).all():
+        raise ValueError(f"route_path: the route needs >= 2 distinct finite points, got {len(pts)}")
+    if ahead_m <= 0 or step_m <= 0:
+        raise ValueError(f"route_path: ahead_m and step_m must be > 0 metres, got {ahead_m}, {step_m}")
+    world_to_ego = np.linalg.inv(np.asarray(ego2world_44, dtype=np.float64))
+    pts = pts @ world_to_ego[:2, :2].T + world_to_ego[:2, 3]  # the ground-plane part of the pose
+    seg_S2 = np.diff(pts, axis=0)
+    length_S = np.linalg.norm(seg_S2, axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(length_S)])
+    normal_S2 = np.stack([-seg_S2[:, 1], seg_S2[:, 0]], axis=1) / length_S[:, None]  # left of the driving direction
+    t_S = np.clip(-(pts[:-1] * seg_S2).sum(1) / length_S**2, 0.0, 1.0)  # the ego sits at the ego-frame origin
+    foot_S2 = pts[:-1] + t_S[:, None] * seg_S2
+    j = int(np.argmin(np.linalg.norm(foot_S2, axis=1)))
+    offset = -float(foot_S2[j] @ normal_S2[j])
+    s_T = arc[j] + t_S[j] * length_S[j] + np.arange(0.0, ahead_m + 1e-9, step_m)
+    s_T = s_T[s_T <= arc[-1] + 1e-9]
+    k_T = np.clip(np.searchsorted(arc, s_T, side="right") - 1, 0, len(seg_S2) - 1)
+    frac_T = (s_T - arc[k_T]) / length_S[k_T]
+    return (pts[k_T] + frac_T[:, None] * seg_S2[k_T] + offset * normal_S2[k_T]).astype(np.float32)
 
 
 def trajectory_relevance(distance_N: torch.Tensor, sigma_traj: float) -> torch.Tensor:
@@ -469,8 +507,11 @@ class VoxelTopKSelector:
 class DrivingAwareSelector:
     """``driving_aware`` (Eq. C): ``TopK(S, K_c) ∪ VoxelTopK(S, K_c)`` with S_i mixing Q_i and trajectory relevance.
 
-    Without a trajectory (None or zero waypoints) T_i = 0 for every Gaussian, so S_i = w_q Q_i / (w_q + w_t) and the
-    ranking is that of Q_i; a warning is logged once per process.
+    The path comes from ``cfg.path``: ``route``, the planned route ahead (``route_path``), or ``extrapolated``, the
+    past ego positions carried on at constant velocity; the caller builds it from the current and past poses and the
+    dataset's route only, never from recorded future poses (``PathSource``). Without a trajectory (None or zero
+    waypoints) T_i = 0 for every Gaussian, so S_i = w_q Q_i / (w_q + w_t) and the ranking is that of Q_i; a warning
+    is logged once per process.
     """
 
     cfg: SelectorConfig

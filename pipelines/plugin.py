@@ -14,6 +14,7 @@ def register(cs: ConfigStore) -> None:
         LLMConfig,
         ProjectionConfig,
         SelectorConfig,
+        register_resolvers,
     )
     from pipelines.data.gaussiandwm import ReleaseConfig
     from pipelines.data.nuscenes import NuScenesConfig
@@ -25,6 +26,7 @@ def register(cs: ConfigStore) -> None:
     from pipelines.recon.config import ReconstructConfig
     from pipelines.understanding.config import LoraStageConfig, TokenizerStageConfig, WorldConfig
 
+    register_resolvers()
     cs.store(group="schema/data", name="synthetic_mini", node=SynthConfig)
     cs.store(group="schema/data", name="nuscenes", node=NuScenesConfig)
     cs.store(group="schema/data", name="gaussiandwm_release", node=ReleaseConfig)

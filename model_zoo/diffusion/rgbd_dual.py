@@ -6,7 +6,10 @@ channels, the noisy target d_t (2L), the reference view's latent d_ref (2L), the
 encoded by the same VAE (2L) and the condition validity mask at latent resolution (1): 6L + 1 channels. The
 high-level condition C_L (LLM hidden states) enters through cross-attention; a learned null token stands in for it
 in classifier-free-guidance dropout, at unconditional sampling and when the ``high_level`` ablation is off
-(Tab. world). The UNet predicts v (Eq. v_t) for both latents; training minimises Eq. L_gen, sampling runs DDIM.
+(Tab. world). The ``low_level`` ablation zeros C_I, C_D and the mask only: d_ref is the reference view, an input of
+F_theta of its own (Eq. v_hat lists it apart from the low-level conditions), present in every row of Tab. world. It
+carries appearance but not the target view's geometry, the "spatial anchor" the high-level-only row lacks. The UNet
+predicts v (Eq. v_t) for both latents; training minimises Eq. L_gen, sampling runs DDIM.
 
 Full runs load a LOCAL directory with ``unet/`` and ``vae/`` (diffusers ``save_pretrained`` layout); ``tiny``
 builds random tiny configs of the same classes whose VAE is trained by ``fit_vae`` as its own upstream step.

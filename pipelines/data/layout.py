@@ -10,6 +10,8 @@ A dataset root looks like::
     boxes3d.parquet              3D boxes in the frame's ego frame
     boxes2d.parquet              2D boxes per camera (pixels of the stored image)
     qa.parquet                   QA records in the paper's JSON schema (+ sample_id, split, gt)
+    routes.json                  optional: {scene: [[x, y], ...]} the ego's planned route, a world-frame polyline in
+                                 driving order (navigation, never the recorded motion), for model.selector.path=route
     scenes/<scene>/images/<CAM>/<frame:05d>.png          RGB (clear weather)
     scenes/<scene>/images_<weather>/<CAM>/<frame:05d>.png weather variants of the same frames
     scenes/<scene>/depth/<CAM>/<frame:05d>.png           uint16 PNG, metres * DEPTH_SCALE, 0 = no depth
@@ -67,6 +69,7 @@ TASKS = ("rdp", "vg2d", "vg3d", "plan", "traj")
 SPLITS = ("train", "val")
 DEPTH_SCALE = 256.0  # KITTI convention: uint16 value / 256 = metres, 0 = invalid (max 255.99 m)
 GAUSS_TOKEN = "<gauss>"
+ROUTES_FILE = "routes.json"
 
 
 class DataError(ValueError):

@@ -9,6 +9,7 @@ from enum import StrEnum
 class Encoder(StrEnum):
     daisy = "daisy"
     qwen3_vl_vision = "qwen3_vl_vision"
+    langsplat_proxy = "langsplat_proxy"
 
 
 class FeatureTokenizer(StrEnum):
@@ -21,13 +22,15 @@ class DistillConfig:
     """E_F frozen; E_z / D_F fitted with L_ae; per-Gaussian codes z_i optimised with L_distill."""
 
     encoder: Encoder = Encoder.daisy
-    """Foundation encoder variant: ``daisy`` (CPU) or ``qwen3_vl_vision`` (a local Qwen3-VL checkpoint)."""
+    """E_F: the foundation encoder, ``daisy`` (CPU) or ``qwen3_vl_vision`` (a local Qwen3-VL checkpoint); or
+    ``langsplat_proxy``, the stand-in for LangSplat's region-level language features that the ablations' "Distillation
+    ✗" rows distil instead (with ``feature_tokenizer=langsplat3``, see ``model_zoo.encoders.langsplat_proxy``)."""
     encoder_path: str | None = None
     """Local checkpoint directory of ``qwen3_vl_vision``."""
     encoder_tiny: bool = False
     """Use the encoder's tiny random flavor (tests, smoke runs)."""
     d_f: int = 64
-    """Feature dimension of ``daisy`` (the Qwen encoder's is fixed by its checkpoint)."""
+    """Feature dimension of ``daisy`` and ``langsplat_proxy`` (the Qwen encoder's is fixed by its checkpoint)."""
     feature_tokenizer: FeatureTokenizer = FeatureTokenizer.foundation
     """Compact code variant: ``foundation`` (``d_z`` dims) or ``langsplat3`` (3 dims, like the public release)."""
     d_z: int = 16

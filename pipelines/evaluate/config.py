@@ -16,7 +16,49 @@ class FdExtractor(StrEnum):
     inception = "inception"
 
 
+class Suite(StrEnum):
+    nuinteract = "nuinteract"
+    nuinstruct = "nuinstruct"
+    omnidrive = "omnidrive"
+
+
 FUTURE_POSES = tuple(p.value for p in FuturePoses)
+SYNTH_DECISIONS = ["stop", "decelerate", "accelerate", "keep speed", "turn left", "turn right", "change lane left",
+                   "change lane right", "go straight"]  # fmt: skip
+"""``pipelines.data.synth.planning``'s speed and direction decisions (not imported: configs stay light)."""
+
+
+@dataclass
+class SuiteMapping:
+    """Which prediction rows feed each metric group (``conf/stage/evaluate_qa/suites/``): glob patterns (``fnmatch``,
+    case-sensitive) matched against a row's ``task`` and its ``category``. Our synthetic QA names categories as
+    ``pipelines.data.synth.qa``; release data as ``"<qa_group>/<qa_subtask>"``, e.g. ``NuInteract_RD&P/*``."""
+
+    proxy: list[Suite] = field(default_factory=lambda: [Suite.nuinstruct, Suite.omnidrive])
+    """Suites whose rows stand in for the benchmark's own data (NuInteract-style task families scored with that
+    suite's metrics): their metrics, tables' titles and captions say "proxy". Empty once the real data is mapped."""
+    nuinteract_rdp: list[str] = field(default_factory=lambda: ["rdp"])
+    """Region description & perception: BLEU-4, ROUGE-L, CIDEr over all these rows."""
+    nuinteract_vg2d: list[str] = field(default_factory=lambda: ["vg2d"])
+    """2D grounding ("<CAM> <box>(x1,y1),(x2,y2)</box>"): mAP, F1, mIoU."""
+    nuinteract_vg3d: list[str] = field(default_factory=lambda: ["vg3d"])
+    """3D grounding ("center: (x, y, z), size: (l, w, h)"): precision, mAP, F1."""
+    nuinteract_plan: list[str] = field(default_factory=lambda: ["plan"])
+    """Planning: decision accuracy."""
+    nuinstruct_regression: list[str] = field(default_factory=lambda: ["2D_perception_infos"])
+    """MAE of the first number (our data: object distances in metres)."""
+    nuinstruct_classification: list[str] = field(default_factory=lambda: ["planning_speed", "planning_direction"])
+    """Decision accuracy."""
+    nuinstruct_detection: list[str] = field(default_factory=lambda: ["2D_visual_grounding"])
+    """mAP as 2D grounding."""
+    nuinstruct_caption: list[str] = field(default_factory=lambda: ["region_description"])
+    """BLEU-4."""
+    omnidrive_text: list[str] = field(
+        default_factory=lambda: ["region_description", "planning_speed", "planning_direction"]
+    )
+    """BLEU-4, CIDEr, ROUGE-L."""
+    decision_labels: list[str] | None = field(default_factory=lambda: list(SYNTH_DECISIONS))
+    """Valid predicted decisions, lowercase (another one is malformed); null accepts any."""
 
 
 @dataclass
@@ -33,6 +75,12 @@ class EvaluateQAConfig:
     """Score only the first N samples of the split (0 = all): smoke runs."""
     tasks: list[str] = field(default_factory=list)
     """Task families answered (``rdp``, ``vg2d``, ``vg3d``, ``plan``, ``traj``); empty = all."""
+    suites: SuiteMapping = field(default_factory=SuiteMapping)
+    """Which rows feed which benchmark's metrics (config group ``stage/evaluate_qa/suites``: ``proxy``)."""
+
+    def __post_init__(self):
+        if isinstance(self.suites, dict):  # the stage gets its config as plain containers
+            self.suites = SuiteMapping(**self.suites)
 
 
 @dataclass
@@ -61,3 +109,9 @@ class EvaluateGenConfig:
     """Local TorchScript file of the standard Inception weights (``fd_extractor: inception``); never downloaded.
     Trusted input: ``torch.jit.load`` runs the file's TorchScript code (there is no weights-only TorchScript load), so
     point it only at a file your team exported or checked (e.g. by its published sha256), never at a user upload."""
+    fvd_weights: str | None = None
+    """Local I3D TorchScript file of FVD (``i3d_torchscript.pt``, the StyleGAN-V export): given, FVD is computed with
+    it (a missing file is an error naming it; never downloaded; trusted input as ``fd_weights``); null: the labelled
+    stand-in ``fd_video_daisy`` (DAISY features over the same clips, approximate) is reported instead."""
+    fvd_clip_frames: int = 10
+    """Frames per FVD clip: consecutive scored frames of one scene, camera and target (the I3D export needs >= 10)."""

@@ -1,21 +1,39 @@
 """The understanding suites (NuInteract, NuInstruct, OmniDrive) of a table of predictions, named as in README: Stages.
 
 Rows are dicts (or a pyarrow Table) with ``task``, ``category``, ``answer`` (reference) and ``prediction``; their
-order is the ranking of grounding answers for mAP. Which rows feed which metric is a ``SuiteMapping``. No official
-public code exists for these protocols, and our tokenizer is not PTB's, so every metric is recorded ``approximate``.
+order is the ranking of grounding answers for mAP. Which rows feed which metric is a ``SuiteMapping``
+(``conf/stage/evaluate_qa/suites``); the suites it lists as ``proxy`` are scored on rows that stand in for that
+benchmark's data. Every metric is labelled: ``official`` for BLEU/ROUGE-L/CIDEr on pycocoevalcap's PTB tokens (and
+the aggregates of official metrics only), ``approximate`` for the rest (no official public code exists for the
+grounding, planning and regression protocols) and for text metrics on the fallback tokenizer.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Collection, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from fnmatch import fnmatchcase
 from typing import Any
 
-from pipelines.data.synth.planning import DIRECTION_DECISIONS, SPEED_DECISIONS
+from gdwm.compare.rounding import mean_of_printed
+from pipelines.evaluate.config import Suite, SuiteMapping
 from pipelines.evaluate.grounding import Scored, score_2d, score_3d
 from pipelines.evaluate.planning import decision_accuracy, regression_mae
-from pipelines.evaluate.text import text_scores
+from pipelines.evaluate.text import (
+    APPROXIMATE,
+    FALLBACK_PROTOCOL,
+    OFFICIAL,
+    PTB_PROTOCOL,
+    Tokenizer,
+    default_tokenizer,
+    label,
+    text_scores,
+    tokenize_all,
+    warn_fallback,
+)
+
+__all__ = ["AGGREGATES", "PROTOCOL", "SuiteMapping", "SuiteResult", "score_predictions", "score_table"]
 
 REQUIRED_COLUMNS = ("task", "category", "answer", "prediction")
 NUINTERACT_TEN = (
@@ -32,10 +50,9 @@ NUINTERACT_TEN = (
 )
 """The metrics whose mean is ``nuinteract/avg``."""
 
-_TOK = "on gdwm's tokenizer, not the Java PTBTokenizer"
-_BLEU = f"BLEU-4 x100, pycocoevalcap Bleu(4) ('closest' reference length) {_TOK}"
-_ROUGE = f"ROUGE-L x100, pycocoevalcap Rouge (beta 1.2) {_TOK}"
-_CIDER = f"CIDEr x100, pycocoevalcap Cider (n 4, sigma 6, document frequencies of the scored references) {_TOK}"
+_BLEU = "BLEU-4 x100, pycocoevalcap Bleu(4) ('closest' reference length)"
+_ROUGE = "ROUGE-L x100, pycocoevalcap Rouge (beta 1.2)"
+_CIDER = "CIDEr x100, pycocoevalcap Cider (n 4, sigma 6, document frequencies of the scored references)"
 _MAP2D = "mean over IoU 0.50:0.05:0.95 of COCO 101-point AP, one box per sample ranked by sample order, unparsed = miss"
 _ACC = "exact match of the decision (text before the first '.'), malformed = wrong"
 PROTOCOL = {
@@ -49,46 +66,25 @@ PROTOCOL = {
     "nuinteract/vg3d_map": "mean over centre distances {0.5,1,2,4} m (nuScenes) of COCO 101-point AP by sample order",
     "nuinteract/vg3d_f1": "F1 at ego-xy centre distance < 2 m: precision over parsed, recall over all samples",
     "nuinteract/plan_acc": _ACC,
-    "nuinteract/avg": "arithmetic mean of the ten NuInteract metrics",
+    "nuinteract/avg": "mean of the ten NuInteract metrics as printed (2 decimals, half up), math.fsum",
     "nuinstruct/mae": "MAE of the first number in the text, answers' unit; unparsed predictions left out and counted",
     "nuinstruct/acc": _ACC,
     "nuinstruct/map": _MAP2D,
     "nuinstruct/bleu": _BLEU,
-    "nuinstruct/average_star": "(acc + map + bleu - mae) / 4",
+    "nuinstruct/average_star": "(acc + map + bleu - mae) / 4 of the values as printed (2 decimals, half up)",
     "omnidrive/bleu": _BLEU,
     "omnidrive/cider": _CIDER,
     "omnidrive/rouge_l": _ROUGE,
-    "omnidrive/avg": "arithmetic mean of omnidrive bleu, cider, rouge_l",
+    "omnidrive/avg": "mean of omnidrive bleu, cider, rouge_l as printed (2 decimals, half up), math.fsum",
 }
-"""What every metric uses (all approximate)."""
-
-
-@dataclass
-class SuiteMapping:
-    """Which rows feed each metric group: glob patterns (``fnmatch``, case-sensitive) matched against a row's ``task``
-    and its ``category``. Defaults fit our synthetic QA (``pipelines.data.synth.qa``); release data names categories
-    ``"<qa_group>/<qa_subtask>"``, e.g. ``nuinteract_rdp=("NuInteract_RD&P/*",)``."""
-
-    nuinteract_rdp: tuple[str, ...] = ("rdp",)
-    """Region description & perception: BLEU-4, ROUGE-L, CIDEr over all these rows."""
-    nuinteract_vg2d: tuple[str, ...] = ("vg2d",)
-    """2D grounding ("<CAM> <box>(x1,y1),(x2,y2)</box>"): mAP, F1, mIoU."""
-    nuinteract_vg3d: tuple[str, ...] = ("vg3d",)
-    """3D grounding ("center: (x, y, z), size: (l, w, h)"): precision, mAP, F1."""
-    nuinteract_plan: tuple[str, ...] = ("plan",)
-    """Planning: decision accuracy."""
-    nuinstruct_regression: tuple[str, ...] = ("2D_perception_infos",)
-    """MAE of the first number (our data: object distances in metres)."""
-    nuinstruct_classification: tuple[str, ...] = ("planning_speed", "planning_direction")
-    """Decision accuracy."""
-    nuinstruct_detection: tuple[str, ...] = ("2D_visual_grounding",)
-    """mAP as 2D grounding."""
-    nuinstruct_caption: tuple[str, ...] = ("region_description",)
-    """BLEU-4."""
-    omnidrive_text: tuple[str, ...] = ("region_description", "planning_speed", "planning_direction")
-    """BLEU-4, CIDEr, ROUGE-L."""
-    decision_labels: tuple[str, ...] | None = SPEED_DECISIONS + DIRECTION_DECISIONS
-    """Valid predicted decisions, lowercase (another one is malformed); None accepts any."""
+"""What every metric uses (text metrics: and the tokenizer, added when scored)."""
+TEXT_METRICS = frozenset(k for k, v in PROTOCOL.items() if v in (_BLEU, _ROUGE, _CIDER))
+"""Official on PTB tokens."""
+PRINTED_DECIMALS = 2
+"""The paper's tables print 2 decimals; its aggregates are means of the printed values."""
+SUITE_TITLES = {Suite.nuinteract: "NuInteract", Suite.nuinstruct: "NuInstruct", Suite.omnidrive: "OmniDrive"}
+METADATA_KEY = b"gdwm.suite_mapping"
+"""Schema metadata of ``predictions.parquet``: the mapping it was scored with, so a rescoring uses the same."""
 
 
 @dataclass
@@ -99,7 +95,19 @@ class SuiteResult:
     """Samples scored per group (``nuinteract/vg2d``), with ``malformed/<group>`` (unparsed predictions, scored as
     misses) and ``bad_answer/<group>`` (unparsed references, skipped) for the parsed groups."""
     protocol: dict[str, str] = field(default_factory=dict)
-    """Metric name -> "approximate: <what it used>; rows: <patterns>"."""
+    """Metric name -> "<label>: <what it used>; rows: <patterns>[; proxy: ...]" (``protocol.json``)."""
+    labels: dict[str, str] = field(default_factory=dict)
+    """Metric name -> ``official`` | ``approximate``."""
+    proxy: dict[str, str] = field(default_factory=dict)
+    """Metric name -> what stands in for the benchmark's data, for the metrics of the mapping's proxy suites."""
+    tokenizer: Tokenizer | None = None
+    """The text metrics' tokenizer (None: no text metric was scored)."""
+
+    def params(self) -> dict[str, str]:
+        """``protocol/<metric>`` (the label) and ``proxy/<metric>`` for the stage run, where ``gdwm compare``
+        reads them for the table's notes; ``text_tokenizer``."""
+        out = {f"protocol/{k}": v for k, v in self.labels.items()} | {f"proxy/{k}": v for k, v in self.proxy.items()}
+        return out | ({"text_tokenizer": self.tokenizer.value} if self.tokenizer else {})
 
     def flat(self) -> dict[str, float]:
         """Metrics and ``count/<key>`` entries, all floats, for MLflow."""
@@ -121,23 +129,57 @@ AGGREGATES = {
     "omnidrive/avg": ("omnidrive/bleu", "omnidrive/cider", "omnidrive/rouge_l"),
 }
 """Metrics computed from other metrics, and what they need."""
+TEXT_GROUPS = {
+    "nuinteract_rdp": {"nuinteract/rdp_bleu", "nuinteract/rdp_rouge_l", "nuinteract/rdp_cider"},
+    "nuinstruct_caption": {"nuinstruct/bleu"},
+    "omnidrive_text": {"omnidrive/bleu", "omnidrive/cider", "omnidrive/rouge_l"},
+}
+"""Mapping fields whose rows are scored as text, and their metrics."""
+
+
+def _selected(rows: list[dict], patterns: Sequence[str]) -> list[dict]:
+    return [r for r in rows if any(fnmatchcase(r[c] or "", p) for p in patterns for c in ("task", "category"))]
 
 
 def score_predictions(
-    rows: Iterable[dict] | Any, mapping: SuiteMapping | None = None, wanted: Collection[str] | None = None
+    rows: Iterable[dict] | Any,
+    mapping: SuiteMapping | None = None,
+    wanted: Collection[str] | None = None,
+    tokenizer: Tokenizer | None = None,
 ) -> SuiteResult:
     """Every suite's metrics of prediction ``rows`` (dicts or a pyarrow Table), ranked for mAP in the given order;
-    with ``wanted``, only the groups those metrics (and the aggregates among them) need."""
+    with ``wanted``, only the groups those metrics (and the aggregates among them) need. Text metrics on
+    ``tokenizer``'s tokens (default: PTB where Java is, else the fallback, with one warning)."""
     m = mapping or SuiteMapping()
     rows = _rows(rows)
     out = SuiteResult()
     need = None if wanted is None else set(wanted).union(*(AGGREGATES[a] for a in wanted if a in AGGREGATES))
+    tok = Tokenizer(tokenizer) if tokenizer is not None else default_tokenizer()
+    text_groups = [g for g, names in TEXT_GROUPS.items() if need is None or not need.isdisjoint(names)]
+    texts = [r[c] or "" for g in text_groups for r in _selected(rows, getattr(m, g)) for c in ("answer", "prediction")]
+    if texts:
+        if tokenizer is None and tok is Tokenizer.fallback:
+            warn_fallback()
+        tokenize_all(texts, tok)  # one java call for every text group
+        out.tokenizer = tok
+    proxies = {Suite(p) for p in m.proxy}
+
+    def record(name: str, lab: str, what: str, patterns: Sequence[str] | None = None) -> None:
+        out.labels[name] = lab
+        suite = Suite(name.split("/")[0])
+        rows_note = f"; rows: {', '.join(patterns)}" if patterns else ""
+        proxy_note = ""
+        if suite in proxies:
+            used = f"rows {', '.join(patterns)}" if patterns else "NuInteract-style task families"
+            out.proxy[name] = f"{used} stand in for {SUITE_TITLES[suite]}'s own data"
+            proxy_note = f"; proxy: {out.proxy[name]}"
+        out.protocol[name] = f"{lab}: {what}{rows_note}{proxy_note}"
 
     def run(group: str, score: Callable[[list[str], list[str]], Scored | dict | None], names: dict[str, str]) -> None:
         if need is not None and need.isdisjoint(names.values()):
             return
         patterns = getattr(m, group.replace("/", "_"))
-        sel = [r for r in rows if any(fnmatchcase(r[c] or "", p) for p in patterns for c in ("task", "category"))]
+        sel = _selected(rows, patterns)
         if not sel:
             return
         scored = score([r["answer"] or "" for r in sel], [r["prediction"] or "" for r in sel])
@@ -153,14 +195,21 @@ def score_predictions(
         for key, name in names.items():
             if key in scored:
                 out.metrics[name] = scored[key]
-                out.protocol[name] = f"approximate: {PROTOCOL[name]}; rows: {', '.join(patterns)}"
+                what = PROTOCOL[name]
+                if name in TEXT_METRICS:
+                    what += f" on {PTB_PROTOCOL if tok is Tokenizer.ptb else FALLBACK_PROTOCOL} tokens"
+                lab = label(tok) if name in TEXT_METRICS else APPROXIMATE
+                record(name, lab, what, patterns)
 
     def accuracy(answers: Sequence[str], predictions: Sequence[str]) -> Scored:
         return decision_accuracy(answers, predictions, m.decision_labels)
 
+    def text(answers: Sequence[str], predictions: Sequence[str]) -> dict[str, float] | None:
+        return text_scores(answers, predictions, tok)
+
     run(
         "nuinteract/rdp",
-        text_scores,
+        text,
         {"bleu": "nuinteract/rdp_bleu", "rouge_l": "nuinteract/rdp_rouge_l", "cider": "nuinteract/rdp_cider"},
     )
     run(
@@ -177,30 +226,36 @@ def score_predictions(
     run("nuinstruct/regression", regression_mae, {"mae": "nuinstruct/mae"})
     run("nuinstruct/classification", accuracy, {"acc": "nuinstruct/acc"})
     run("nuinstruct/detection", score_2d, {"map": "nuinstruct/map"})
-    run("nuinstruct/caption", text_scores, {"bleu": "nuinstruct/bleu"})
-    run(
-        "omnidrive/text",
-        text_scores,
-        {"bleu": "omnidrive/bleu", "cider": "omnidrive/cider", "rouge_l": "omnidrive/rouge_l"},
-    )
+    run("nuinstruct/caption", text, {"bleu": "nuinstruct/bleu"})
+    run("omnidrive/text", text, {"bleu": "omnidrive/bleu", "cider": "omnidrive/cider", "rouge_l": "omnidrive/rouge_l"})
 
-    def aggregate(name: str, parts: Sequence[str], value: Callable[..., float]) -> None:
+    def aggregate(name: str, parts: Sequence[str], signs: Sequence[int] | None = None) -> None:
         if all(p in out.metrics for p in parts):
-            out.metrics[name] = value(*(out.metrics[p] for p in parts))
-            out.protocol[name] = f"approximate: {PROTOCOL[name]}"
+            values = [out.metrics[p] * (signs[i] if signs else 1) for i, p in enumerate(parts)]
+            out.metrics[name] = mean_of_printed(values, PRINTED_DECIMALS)
+            official = all(out.labels[p] == OFFICIAL for p in parts)
+            record(name, OFFICIAL if official else APPROXIMATE, PROTOCOL[name])
 
-    aggregate("nuinteract/avg", AGGREGATES["nuinteract/avg"], lambda *v: sum(v) / len(v))
-    aggregate(
-        "nuinstruct/average_star",
-        AGGREGATES["nuinstruct/average_star"],
-        lambda acc, map_, bleu, mae: (acc + map_ + bleu - mae) / 4,
-    )
-    aggregate("omnidrive/avg", AGGREGATES["omnidrive/avg"], lambda *v: sum(v) / len(v))
+    aggregate("nuinteract/avg", AGGREGATES["nuinteract/avg"])
+    aggregate("nuinstruct/average_star", AGGREGATES["nuinstruct/average_star"], (1, 1, 1, -1))  # (acc+map+bleu-mae)/4
+    aggregate("omnidrive/avg", AGGREGATES["omnidrive/avg"])
     return out
+
+
+def with_mapping(table: Any, mapping: SuiteMapping) -> Any:
+    """``table`` (pyarrow) carrying ``mapping`` in its schema metadata, for ``score_table``."""
+    meta = dict(table.schema.metadata or {}) | {METADATA_KEY: json.dumps(asdict(mapping)).encode()}
+    return table.replace_schema_metadata(meta)
+
+
+def mapping_of(table: Any) -> SuiteMapping | None:
+    """The mapping a predictions table was scored with (``with_mapping``); None for plain rows or older tables."""
+    meta = getattr(getattr(table, "schema", None), "metadata", None) or {}
+    return SuiteMapping(**json.loads(meta[METADATA_KEY])) if METADATA_KEY in meta else None
 
 
 def score_table(table: Any, wanted: Collection[str] | None = None) -> dict[str, float]:
     """The metrics of a ``predictions.parquet`` table (or any subset of its rows, repeats allowed): what
     ``evaluate_qa`` logs, recomputed on bootstrap resamples by ``gdwm compare`` and ``gdwm regress`` (only the
-    ``wanted`` ones and what they need)."""
-    return score_predictions(table, wanted=wanted).metrics
+    ``wanted`` ones and what they need), with the suite mapping the table carries."""
+    return score_predictions(table, mapping_of(table), wanted=wanted).metrics

@@ -50,8 +50,8 @@ class EditArgs:
     """The edit: instruction text or JSON (``pipelines.generation.edits.parse_edit``), e.g. "Change the weather to
     rain." (required)."""
     seed: int = 0
-    """Sampling seed; the unedited clip uses the same seed (and, for geometry edits, the same prompt), so
-    differences come from the edit alone."""
+    """Sampling seed; the unedited clip (original Gaussians, no instruction in C_L) uses the same seed, so
+    differences come from the edit, carried by the edited Gaussians and by the instruction in C_L."""
     fps: float = 2.0
     """Frame rate of the MP4."""
 
@@ -241,9 +241,8 @@ def edit(cfg, _argv: list[str]) -> int:
 
     from gdwm.cli import CommandError
     from gdwm.term import console
-    from pipelines.generation.edits import ReferenceFrame, Weather, apply_edit, edit_instruction, parse_edit
-    from pipelines.generation.samples import GenTarget, build_example, frame_gaussians, stack
-    from pipelines.understanding.data import QASample
+    from pipelines.generation.edits import ReferenceFrame, Weather, edit_instruction, parse_edit
+    from pipelines.generation.samples import GenTarget, build_example, edited_example, frame_gaussians, stack
 
     a = EditArgs(**cfg.args)
     scene = _require(a.scene, "args.scene")
@@ -256,50 +255,51 @@ def edit(cfg, _argv: list[str]) -> int:
     frames = [f for f in range(a.frame, min(a.frame + a.frames, sc.num_frames))]
     ref_g = frame_gaussians(rt.rec_dirs[scene], scene, a.frame)
     poses = sc.ego_poses
-    weather = the_edit.name if isinstance(the_edit, Weather) else "clear"
-    before, after, targets_b, targets_a = [], [], [], []
+    before, after, prompts_b, prompts_a = [], [], [], []
     for k, f in enumerate(frames):
         g = frame_gaussians(rt.rec_dirs[scene], scene, f)
         ref = ReferenceFrame(a.frame, ref_g, sc.frame(a.frame).boxes3d(), np.linalg.inv(poses[f]) @ poses[a.frame])
-        g_edit = apply_edit(the_edit, g, sc.frame(f).boxes3d(), scene=scene, frame=f, t_s=k / rate, reference=ref)
-        t_b = GenTarget(scene, f, a.camera, "shift", lateral_m=0.0)
-        t_a = GenTarget(scene, f, a.camera, "weather", weather=weather) if weather != "clear" else t_b
-        before.append(build_example(rt.ds, t_b, g, rt.model.cfg.image_size, edited=True))
-        after.append(build_example(rt.ds, t_a, g_edit, rt.model.cfg.image_size, edited=True))
-        targets_b.append(t_b)
-        targets_a.append(t_a)
-    text = edit_instruction(the_edit)
-    prompts = [
-        QASample(f"{t.scene}/{t.frame:05d}/edit", t.scene, t.frame, "gen", f"Based on <gauss>, {text}", "", (t.camera,))
-        for t in targets_a
-    ]
-    # the unedited clip: same seed and prompt, so for geometry edits the difference is the edited Gaussians alone
-    rgb_b, _ = _sample(rt, before, [t.qa() for t in targets_b] if isinstance(the_edit, Weather) else prompts, a.seed)
-    rgb_a, depth_a = _sample(rt, after, prompts, a.seed)
+        t = GenTarget(scene, f, a.camera, "shift", lateral_m=0.0)
+        ex_a, qa_a = edited_example(rt.ds, t, the_edit, g, sc.frame(f).boxes3d(), rt.model.cfg.image_size,
+                                    t_s=k / rate, reference=ref)  # fmt: skip
+        before.append(build_example(rt.ds, t, g, rt.model.cfg.image_size, edited=True))
+        after.append(ex_a)
+        prompts_b.append(t.qa())
+        prompts_a.append(qa_a)
+    # one seed for every clip: original (its Gaussians, no instruction), edited (edited Gaussians, instruction in
+    # C_L) and, for geometry edits, the control (original Gaussians, instruction) that isolates the Gaussian edit
+    rgb_o, _ = _sample(rt, before, prompts_b, a.seed)
+    rgb_a, depth_a = _sample(rt, after, prompts_a, a.seed)
+    geometry = not isinstance(the_edit, Weather)
+    rgb_b = _sample(rt, before, prompts_a, a.seed)[0] if geometry else rgb_o
     slug = re.sub(r"[^0-9A-Za-z]+", "_", edit_instruction(the_edit)).strip("_").lower()[:60]
     out = Path(cfg.workdir) / "edits" / f"{scene}_{a.frame:03d}_{slug}"
     region = edit_region(stack(before), stack(after))
-    if isinstance(the_edit, Weather):
+    if not geometry:
         region = torch.ones_like(region)
-    # the UNet's receptive field spreads a local edit a little: compare inside the region to well outside it
+    # the Gaussian edit against the control (weather: against the original); the UNet's receptive field spreads a
+    # local edit a little, so inside the region is compared to well outside it
     outside = torch.from_numpy(~binary_dilation(region.numpy(), iterations=8, axes=(1, 2)))
     delta = (rgb_a - rgb_b).abs().mean(1)
     inside_mean = float(delta[region].mean()) if bool(region.any()) else 0.0
     outside_mean = float(delta[outside].mean()) if bool(outside.any()) else 0.0
     for i, f in enumerate(frames):
         _png(out / f"edited_{f:03d}.png", rgb_a[i])
-        _png(out / f"original_{f:03d}.png", rgb_b[i])
+        _png(out / f"original_{f:03d}.png", rgb_o[i])
         _depth_png(out / f"edited_{f:03d}_depth.png", depth_a[i], rt.model.cfg.max_depth)
     write_mp4(out / "edited.mp4", list(rgb_a), a.fps)
     report = {
         "edit": edit_instruction(the_edit),
+        "prompt": prompts_a[0].instruction,
         "frames": frames,
         "edited_pixels": int(region.sum()),
         "mean_abs_change_in_edited_region": inside_mean,
         "mean_abs_change_outside": outside_mean,
+        "mean_abs_change_from_instruction": float(((rgb_b if geometry else rgb_a) - rgb_o).abs().mean()),
     }
     (out / "report.json").write_text(json.dumps(report, indent=2))
-    metrics = {"edit/change_inside": inside_mean, "edit/change_outside": outside_mean}
+    metrics = {"edit/change_inside": inside_mean, "edit/change_outside": outside_mean,
+               "edit/change_from_instruction": report["mean_abs_change_from_instruction"]}  # fmt: skip
     run_id = _log(cfg, "edit", f"edit {scene}/{a.frame}", out,
                   {"scene": scene, "frame": a.frame, "edit": report["edit"], "diffusion_key": rt.diffusion_key},
                   metrics)  # fmt: skip

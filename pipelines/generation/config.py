@@ -42,5 +42,10 @@ class DiffusionStageConfig:
     """Future targets, seconds ahead on the recorded ego trajectory."""
     weathers: list[str] = field(default_factory=lambda: ["rain", "fog", "night"])
     """Weather-editing targets (pairs from the dataset's weather variants)."""
+    weather_targets: bool = True
+    """Train on the ``weathers`` targets at all. The dual-condition table (``sweep=dual_condition``) turns them off
+    in every row: a weather target's low-level conditions are the clear frame's Gaussians projected into the same
+    camera, so without C_L (the low-level-only row) rain, fog and night arrive as identical inputs and the UNet can
+    only learn their average; the rows would then differ in the task, not just in the conditions they are given."""
     log_every: int = 10
     """Log the training loss every N steps."""

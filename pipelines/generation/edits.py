@@ -1,8 +1,10 @@
 """Instruction-controllable 4D editing (Sec. Spatiotemporal Generation and 4D Editing).
 
-Vehicle edits change the frame's Gaussians before the low-level conditions are projected from them, so a removed,
-moved, stopped or inserted vehicle has one geometry in every target view and frame. Weather is no geometry edit:
-it leaves the Gaussians alone and reaches the generator only through the instruction text of C_L.
+Every edit's instruction text (``edit_instruction``) goes into the prompt the LLM turns into C_L, the editing intent
+of Eq. v_hat (``pipelines.generation.samples.edited_example``). Vehicle edits also change the frame's Gaussians
+before the low-level conditions are projected from them, so a removed, moved, stopped or inserted vehicle has one
+geometry in every target view and frame. Weather is no geometry edit: it leaves the Gaussians alone and reaches the
+generator through C_L only.
 
 Legend: N Gaussians, T trajectory points. Gaussians are dicts in the layout's schema (ego frame: ``xyz``,
 ``scale``, ``rotation`` wxyz, ``opacity``, ``color``, ``feature``), one row per Gaussian. Boxes are the dataset's

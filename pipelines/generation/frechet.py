@@ -4,9 +4,13 @@
   pytorch-fid ``pt_inception-2015-12-05`` export taking [0, 255] images and returning 2048-d pool features).
 - ``fd_<extractor>`` (protocol ``approximate``) with anything else, e.g. ``fd_daisy``: our frozen CPU descriptor,
   pooled over the image.
-- ``fvd``: only with an I3D TorchScript file from a local path; without one it is a clear error, never a stand-in.
+- ``fvd``: only with the I3D TorchScript file (``i3d_torchscript.pt``, the StyleGAN-V export of the Kinetics-400 I3D
+  the reference FVD uses) from a local path; a path that holds no such file is a clear error naming it, never a
+  download.
+- ``fd_video_daisy`` (protocol ``approximate``): the labelled stand-in for FVD when no I3D path is given; the DAISY
+  descriptor per frame, pooled over each clip with its frame-to-frame change. It is never named ``fvd``.
 
-Legend: ``N`` images, ``D`` feature width.
+Legend: ``N`` images (or clips), ``T`` frames per clip, ``D`` feature width.
 """
 
 from __future__ import annotations
@@ -103,19 +107,67 @@ def build_extractor(kind: str, path: str | None = None) -> Extractor:
     raise ValueError(f"unknown Fréchet feature extractor '{kind}' (inception, daisy)")
 
 
-def fvd_extractor(path: str | Path | None) -> Extractor:
-    """FVD's I3D network from a local TorchScript file; anything else is an error (no stand-in is called FVD)."""
-    if path is None or not Path(path).is_file():
-        raise FileNotFoundError(
-            f"FVD needs an I3D TorchScript file from a local path; got {path!r} (FVD is not computed without it)"
+I3D_FILE = "i3d_torchscript.pt"
+"""The file FVD expects: the StyleGAN-V TorchScript export of the Kinetics-400 I3D (taking ``[N, 3, T, H, W]`` uint8
+videos with ``rescale``, ``resize`` and ``return_features`` flags and returning 400-d logit features)."""
+
+STANDIN_NAME = "fd_video_daisy"
+"""Metric name of FVD's stand-in (an ``fd_`` name: a Fréchet distance, lower is better, never called FVD)."""
+
+
+def missing_i3d_message(path: str | Path | None) -> str:
+    """The error of an FVD run without its I3D file, naming what was expected where."""
+    if path is None:
+        return (
+            f"FVD needs the I3D TorchScript file {I3D_FILE} from a local path; none was given "
+            "(set stage.evaluate_gen.fvd_weights=/path/to/i3d_torchscript.pt; it is never downloaded)"
         )
+    return (
+        f"FVD needs the I3D TorchScript file {I3D_FILE}; stage.evaluate_gen.fvd_weights={path} does not exist "
+        "(place the StyleGAN-V i3d_torchscript.pt export there; it is never downloaded)"
+    )
+
+
+def fvd_extractor(path: str | Path | None) -> Extractor:
+    """FVD's I3D network from the local TorchScript file at ``path``; anything else is ``missing_i3d_message``."""
+    if path is None or not Path(path).is_file():
+        raise FileNotFoundError(missing_i3d_message(path))
     net = torch.jit.load(str(path), map_location="cpu").eval()  # runs its code: an operator-vetted file only
 
     @torch.no_grad()
     def run(videos_NT3HW: torch.Tensor) -> np.ndarray:
-        return net(videos_NT3HW.permute(0, 2, 1, 3, 4) * 2 - 1).reshape(len(videos_NT3HW), -1).double().numpy()
+        # StyleGAN-V's call: uint8 [N, 3, T, H, W], rescaled to [-1, 1] and resized to 224 inside the network
+        u8 = (videos_NT3HW.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 2, 1, 3, 4)
+        feats = net(u8, rescale=True, resize=True, return_features=True)
+        return feats.reshape(len(videos_NT3HW), -1).double().numpy()
 
     return Extractor("fvd", "official", str(path), run)
+
+
+def daisy_video_extractor(d_f: int = 64, seed: int = 0) -> Extractor:
+    """FVD's labelled stand-in: per clip, [mean over frames, mean |change between consecutive frames|] of the
+    per-frame DAISY features (``daisy_extractor``), so both appearance and temporal flicker move the distance."""
+    frame = daisy_extractor(d_f, seed)
+
+    def run(videos_NT3HW: torch.Tensor) -> np.ndarray:
+        N, T = videos_NT3HW.shape[:2]
+        if T < 2:
+            raise ValueError(f"{STANDIN_NAME}: clips need >= 2 frames, got {T}")
+        f_NTD = frame(videos_NT3HW.reshape(N * T, *videos_NT3HW.shape[2:])).reshape(N, T, -1)
+        return np.concatenate([f_NTD.mean(1), np.abs(np.diff(f_NTD, axis=1)).mean(1)], axis=1)
+
+    source = f"stand-in for FVD (no I3D weights): {frame.source}, per clip [frame mean, mean |frame change|]"
+    return Extractor(STANDIN_NAME, "approximate", source, run)
+
+
+def build_video_extractor(i3d_path: str | None) -> Extractor:
+    """FVD with the I3D file at ``i3d_path`` (an error naming it when it is missing); no path: the DAISY stand-in."""
+    return daisy_video_extractor() if i3d_path is None else fvd_extractor(i3d_path)
+
+
+def label(extractor: Extractor) -> str:
+    """What ``protocol.json`` and the tracker record of a Fréchet metric: name, protocol and source."""
+    return f"{extractor.name}: {extractor.protocol} ({extractor.source})"
 
 
 def frechet(real_N3HW: torch.Tensor, fake_N3HW: torch.Tensor, extractor: Extractor) -> float:

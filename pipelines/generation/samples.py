@@ -3,14 +3,15 @@
 A target is a camera state relative to frame ``f``: a lateral shift (ground truth re-rendered by the synthetic
 generator), a future frame ``f + h`` (ground truth recorded), or a weather variant of the same view (instruction
 editing; synthetic_mini's weather renders are the pairs). Every example carries the reference view (frame ``f``,
-clear), the low-level conditions (frame ``f``'s Gaussians projected into the target camera) and the ground truth.
+clear), the low-level conditions (frame ``f``'s Gaussians projected into the target camera) and the ground truth;
+its prompt (``GenTarget.qa``) asks for the camera state and carries any editing intent, so C_L carries it too.
 
 Legend: ``H x W`` the model's image size.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -27,6 +28,7 @@ from pipelines.generation.conditions import (
     shifted_camera_pose,
     target_name,
 )
+from pipelines.generation.edits import Edit, ReferenceFrame, Weather, apply_edit, edit_instruction
 from pipelines.understanding.data import QASample
 
 KINDS = ("shift", "future", "weather")
@@ -49,6 +51,9 @@ class GenTarget:
     ego_pose: tuple[float, ...] | None = None
     """Future targets on a predicted trajectory: the predicted ego pose at the horizon in frame ``frame``'s ego
     frame (4x4, row-major); None = the recorded pose."""
+    edit: str = ""
+    """The editing intent, as instruction text (``edits.edit_instruction``), that the prompt of C_L carries; empty =
+    none. A weather target without one carries its weather's (``Change the weather to rain.``)."""
 
     @property
     def name(self) -> str:
@@ -62,17 +67,27 @@ class GenTarget:
         return f"weather_{self.weather}"
 
     @property
+    def edit_text(self) -> str:
+        """The editing instruction of the prompt: ``edit``, or a weather target's own weather edit."""
+        if self.edit or self.kind != "weather":
+            return self.edit
+        return edit_instruction(Weather(self.weather))
+
+    @property
     def instruction(self) -> str:
-        if self.kind == "shift":
+        """The view request (camera state), then the editing intent if any: the text the LLM turns into C_L."""
+        if self.kind == "shift" and self.lateral_m:
             side = "left" if self.lateral_m > 0 else "right"
-            return f"Based on <gauss>, generate the {self.camera} view shifted {abs(self.lateral_m):g} m to the {side}."
-        if self.kind == "future":
-            return f"Based on <gauss>, generate the {self.camera} view {self.horizon_s:g} s ahead."
-        return f"Based on <gauss>, generate the {self.camera} view in {self.weather} weather."
+            view = f"generate the {self.camera} view shifted {abs(self.lateral_m):g} m to the {side}."
+        elif self.kind == "future":
+            view = f"generate the {self.camera} view {self.horizon_s:g} s ahead."
+        else:
+            view = f"generate the {self.camera} view."
+        return " ".join(filter(None, [f"Based on <gauss>, {view}", self.edit_text]))
 
     def qa(self) -> QASample:
         """The prompt the LLM turns into C_L."""
-        sid = f"{self.scene}/{self.frame:05d}/gen/{self.camera}/{self.name}"
+        sid = f"{self.scene}/{self.frame:05d}/gen/{self.camera}/{self.name}" + ("/edit" if self.edit else "")
         return QASample(sid, self.scene, self.frame, "gen", self.instruction, "", (self.camera,))
 
 
@@ -181,6 +196,31 @@ def build_example(
         _nearest(np.asarray(cond.depth), hw),
         _nearest(np.asarray(cond.mask, dtype=np.float32), hw),
     )
+
+
+def edited_example(
+    ds: GSQADataset,
+    t: GenTarget,
+    edit: Edit,
+    gaussians: dict[str, np.ndarray],
+    boxes: list[dict],
+    hw: tuple[int, int],
+    *,
+    t_s: float = 0.0,
+    reference: ReferenceFrame | None = None,
+) -> tuple[GenExample, QASample]:
+    """One view of ``edit`` conditioned as the paper means it (Eq. v_hat: editing intent is part of C_L).
+
+    Low-level: C_I, C_D projected from the edited Gaussians (``apply_edit``; a weather edit leaves them as they
+    are). High-level: the prompt of C_L carries the instruction text (``edit_instruction``) for every edit kind. A
+    weather edit asks for that weather's target, whose prompt is the one the weather targets were trained with; any
+    other edit keeps ``t``'s camera state. There is no ground truth: the reference view stands in as the target.
+    """
+    g = apply_edit(edit, gaussians, boxes, scene=t.scene, frame=t.frame, t_s=t_s, reference=reference)
+    if isinstance(edit, Weather):
+        t = replace(t, kind="weather", weather=edit.name, lateral_m=0.0, horizon_frames=0, horizon_s=0.0, ego_pose=None)
+    target = replace(t, edit=edit_instruction(edit))
+    return build_example(ds, target, g, hw, edited=True), target.qa()
 
 
 def stack(examples: list[GenExample]) -> dict[str, torch.Tensor]:

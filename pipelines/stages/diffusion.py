@@ -2,7 +2,8 @@
 
 ``diffusion_vae`` builds the model (tiny flavor: random UNet and VAE configs of the diffusers classes; full runs:
 weights from ``model.diffusion.path``) and fits the tiny VAE to the training views, a cached upstream step of its
-own. ``diffusion`` trains the UNet with v-prediction (Eq. L_gen) on shift, future and weather targets: reference =
+own. ``diffusion`` trains the UNet with v-prediction (Eq. L_gen) on shift, future and (unless
+``stage.diffusion.weather_targets=false``, as the dual-condition table sets) weather targets: reference =
 the clear view of frame f, low-level = frame f's reconstructed Gaussians projected into the target camera, C_L = the
 LoRA'd LLM's hidden states for (Z_G, instruction). The held-out targets are the ``evaluate_gen`` stage's.
 
@@ -30,6 +31,7 @@ from pipelines.data.reader import GSQADataset
 from pipelines.generation.conditions import NoGaussiansInView
 from pipelines.generation.config import DiffusionStageConfig, VaeStageConfig
 from pipelines.generation.samples import (
+    KINDS,
     GenExample,
     GenTarget,
     build_example,
@@ -97,6 +99,11 @@ def diffusion_vae(ctx: StageContext) -> dict:
     if metrics["vae_fitted"]:
         ctx.register("gdwm-vae", "vae", f"{cfg.name}-tiny")
     return metrics
+
+
+def training_weathers(cfg: DiffusionStageConfig) -> list[str]:
+    """The weather targets trained on: ``cfg.weathers``, or none with ``cfg.weather_targets`` off."""
+    return list(cfg.weathers) if cfg.weather_targets else []
 
 
 def build_examples(ds, targets: list[GenTarget], rec_dirs: dict[str, Path], hw) -> tuple[list[GenExample], int]:
@@ -224,11 +231,13 @@ def diffusion(ctx: StageContext) -> dict:
     distill_dirs = dict(ctx.upstream["distill"].scenes)
     hw = mcfg.image_size
 
-    train_targets = enumerate_targets(ds, splits["train"], cfg.cameras, cfg.shifts_m, cfg.horizons_s, cfg.weathers)
+    train_targets = enumerate_targets(ds, splits["train"], cfg.cameras, cfg.shifts_m, cfg.horizons_s,
+                                      training_weathers(cfg))  # fmt: skip
     examples, skipped = build_examples(ds, train_targets, rec_dirs, hw)
     if not examples:
         raise ValueError(f"diffusion: no training examples ({skipped} targets skipped) in scenes {splits['train']}")
-    ctx.tracker.log_metrics({"train_examples": float(len(examples)), "skipped_targets": float(skipped)})
+    per_kind = {f"train_examples/{k}": float(sum(e.target.kind == k for e in examples)) for k in KINDS}
+    ctx.tracker.log_metrics({"train_examples": float(len(examples)), "skipped_targets": float(skipped), **per_kind})
     c_L = conditions_of(world, ds, distill_dirs, [e.target.qa() for e in examples], cfg.batch_size)
     data = stack(examples)
     tokens, mask = pad_tokens(c_L)
@@ -251,7 +260,7 @@ def diffusion(ctx: StageContext) -> dict:
     model.load_state_dict(result.state["model"], strict=False)
     model.eval()
 
-    metrics: dict = {"train_examples": len(examples)}
+    metrics: dict = {"train_examples": len(examples), **per_kind}
     model.save(ctx.out_dir)
     (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True))
     ctx.register("gdwm-unet", ".", zoo_variant(mcfg))

@@ -1,5 +1,6 @@
 """distill: lift frozen foundation features into per-Gaussian compact codes (paper Eqs. F_v = E_F(I_v),
-f_i = D_F(z_i), F_v(u) = sum_i w_iu f_i, L_distill, L_ae).
+f_i = D_F(z_i), F_v(u) = sum_i w_iu f_i, L_distill, L_ae). E_F is ``stage.distill.encoder``: the foundation encoder,
+or the LangSplat stand-in of the ablations' "Distillation ✗" rows (``autoencoder.json`` records which).
 
 Output of one scene::
 
@@ -23,6 +24,7 @@ from gdwm.stage import StageContext, stage
 from model_zoo import registry
 from model_zoo.distill_math import l_distill
 from model_zoo.encoders.daisy import DaisyConfig
+from model_zoo.encoders.langsplat_proxy import LangSplatProxyConfig
 from model_zoo.encoders.qwen3_vl_vision import QwenVisionConfig
 from model_zoo.feature_ae import FeatureAEConfig, fit_autoencoder
 from pipelines.data.layout import gaussians_table, write_arrow
@@ -39,7 +41,9 @@ def load_encoder(cfg: Mapping) -> torch.nn.Module:
         return registry.build("encoder", "daisy", DaisyConfig(d_f=c.d_f, seed=c.seed))
     if c.encoder == "qwen3_vl_vision":
         return registry.build("encoder", "qwen3_vl_vision", QwenVisionConfig(path=c.encoder_path, tiny=c.encoder_tiny))
-    raise ValueError(f"stage.distill.encoder: unknown encoder '{c.encoder}' (daisy, qwen3_vl_vision)")
+    if c.encoder == "langsplat_proxy":
+        return registry.build("encoder", "langsplat_proxy", LangSplatProxyConfig(d_f=c.d_f))
+    raise ValueError(f"stage.distill.encoder: unknown encoder '{c.encoder}' (daisy, qwen3_vl_vision, langsplat_proxy)")
 
 
 def _render(weights: torch.Tensor, feats_NF: torch.Tensor, hw: tuple[int, int]) -> torch.Tensor:

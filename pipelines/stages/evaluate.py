@@ -8,7 +8,9 @@ understanding suite (NuInteract, NuInstruct, OmniDrive) and keeps the per-sample
 and future horizons, the latter on recorded or LLM-predicted ego poses — and scores them against ground truth.
 
 Output: ``metrics.json`` (the stage's return value: the trial's metrics), ``protocol.json`` (what every metric
-used), and ``predictions.parquet`` (QA) or ``samples/<target>/...png`` (generation).
+used; QA: each labelled ``official`` or ``approximate``, and ``proxy`` where the suite mapping says so, as the stage
+run's params ``protocol/<metric>`` and ``proxy/<metric>`` that ``gdwm compare`` prints), and ``predictions.parquet``
+(QA, with the suite mapping in its schema metadata) or ``samples/<target>/...png`` (generation).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from ray.util import ActorPool
 from gdwm.stage import StageContext, stage
 from pipelines.data.reader import GSQADataset
 from pipelines.evaluate.config import FUTURE_POSES, EvaluateGenConfig, EvaluateQAConfig
-from pipelines.evaluate.suites import score_predictions, score_table
+from pipelines.evaluate.suites import score_predictions, score_table, with_mapping
 from pipelines.understanding.data import FrameStore, QASample, load_samples
 from pipelines.understanding.infer import PREDICTION_SCHEMA, predict, write_predictions
 from pipelines.understanding.model import load_world_model
@@ -90,15 +92,15 @@ def evaluate_qa(ctx: StageContext) -> dict:
             f"evaluate_qa: split '{cfg.split}' has no samples to answer (tasks {cfg.tasks or 'all'}; "
             f"skipped {dict(skipped)})"
         )
-    table = answer_all(ctx, model_dir, samples, cfg)
+    table = with_mapping(answer_all(ctx, model_dir, samples, cfg), cfg.suites)  # rescorings use the same mapping
     write_predictions(table, ctx.out_dir / "predictions.parquet")
-    result = score_predictions(table.to_pylist())
+    result = score_predictions(table.to_pylist(), cfg.suites)
     metrics = {**result.flat(), **{f"count/skipped/{k}": float(v) for k, v in skipped.items()}}
     metrics["count/answered"] = float(table.num_rows)
     (ctx.out_dir / "protocol.json").write_text(json.dumps(result.protocol, indent=2, sort_keys=True))
     (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True))
     ctx.tracker.log_metrics(metrics)
-    ctx.tracker.log_params({"split": cfg.split, "samples": len(samples)})
+    ctx.tracker.log_params({"split": cfg.split, "samples": len(samples), **result.params()})  # labels for compare
     ctx.tracker.log_artifact(str(ctx.out_dir / "predictions.parquet"))
     ctx.tracker.log_artifact(str(ctx.out_dir / "protocol.json"))
     return metrics
@@ -108,7 +110,7 @@ def evaluate_qa(ctx: StageContext) -> dict:
        resources="eval", evaluation=True, seeded=True)  # fmt: skip
 def evaluate_gen(ctx: StageContext) -> dict:
     from model_zoo.diffusion.rgbd_dual import RGBDDual
-    from pipelines.generation.frechet import build_extractor
+    from pipelines.generation.frechet import build_extractor, build_video_extractor, label
     from pipelines.generation.metrics import PROTOCOL, score_views
     from pipelines.generation.samples import enumerate_targets, stack
     from pipelines.generation.trajectory import predicted_future_targets
@@ -117,6 +119,8 @@ def evaluate_gen(ctx: StageContext) -> dict:
     cfg = EvaluateGenConfig(**ctx.cfg("stage.evaluate_gen"))
     if cfg.future_poses not in FUTURE_POSES:
         raise ValueError(f"stage.evaluate_gen.future_poses: unknown '{cfg.future_poses}' (one of {list(FUTURE_POSES)})")
+    extractor = build_extractor(cfg.fd_extractor, cfg.fd_weights)  # a missing weight file fails before sampling
+    video = build_video_extractor(cfg.fvd_weights)
     model = RGBDDual.from_pretrained(ctx.upstream["diffusion"].path).eval()
     ds = GSQADataset(ctx.data_root)
     rec_dirs = dict(ctx.upstream["reconstruct"].scenes)
@@ -152,20 +156,21 @@ def evaluate_gen(ctx: StageContext) -> dict:
             t = ex.target
             save_grid(ctx.out_dir / f"samples/{t.name}/{t.scene}_{t.frame:03d}_{t.camera}.png", ex, rgb[j])
         ctx.progress(min(i + cfg.batch_size, len(held)), len(held), "generating")
-    extractor = build_extractor(cfg.fd_extractor, cfg.fd_weights)
-    metrics = score_views(scored, model.cfg.max_depth, extractor)
+    metrics = score_views(scored, model.cfg.max_depth, extractor, video, cfg.fvd_clip_frames)
     metrics |= {"count/heldout_views": float(len(held)), "count/skipped_targets": float(skipped)}
     if cfg.future_poses == "predicted":
         metrics["count/trajectory_without_pose_at_horizon"] = float(unparsed)
     protocol = {
         "views": PROTOCOL,
-        "frechet": f"{extractor.name}: {extractor.protocol} ({extractor.source})",
+        "frechet": label(extractor),
+        "fvd": label(video),
         "future_poses": cfg.future_poses,
         "config": asdict(cfg),
     }
     (ctx.out_dir / "protocol.json").write_text(json.dumps(protocol, indent=2, sort_keys=True))
     (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True))
     ctx.tracker.log_metrics(metrics)
-    ctx.tracker.log_params({"fd_protocol": protocol["frechet"], "metrics_protocol": PROTOCOL})
+    ctx.tracker.log_params({"fd_protocol": protocol["frechet"], "fvd_protocol": protocol["fvd"],
+                            "metrics_protocol": PROTOCOL})  # fmt: skip
     ctx.tracker.log_artifact(str(ctx.out_dir / "protocol.json"))
     return metrics

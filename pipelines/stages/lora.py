@@ -8,11 +8,9 @@ from __future__ import annotations
 from dataclasses import replace
 
 from gdwm.stage import StageContext, stage
-from pipelines.data.reader import GSQADataset
 from pipelines.understanding.config import LoraStageConfig
-from pipelines.understanding.data import load_samples
 from pipelines.understanding.model import load_world_model
-from pipelines.understanding.stage_common import MODEL_CONFIG, components, finish, log_skipped, run_training
+from pipelines.understanding.stage_common import MODEL_CONFIG, finish, run_training, training_samples
 
 MODES = ("train", "zero_shot")
 
@@ -34,8 +32,6 @@ def lora(ctx: StageContext) -> dict:
         model = load_world_model(init)
         model.comp = replace(model.comp, world=replace(model.comp.world, gaussian_tokens=False))
         return finish(ctx, model, cfg, scene_dirs, {"train_samples": 0, "trained": 0.0})
-    gaussian = components(ctx).world.gaussian_tokens
-    train, skipped = load_samples(GSQADataset(ctx.data_root), "train", scene_dirs, need_gaussians=gaussian)
-    log_skipped(ctx, "train", skipped)
+    train = training_samples(ctx, scene_dirs)
     model = run_training(ctx, "lora", init, cfg, scene_dirs)
     return finish(ctx, model, cfg, scene_dirs, {"train_samples": len(train), "trained": 1.0}, register="gdwm-lora")

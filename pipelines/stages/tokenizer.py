@@ -1,4 +1,4 @@
-"""tokenizer (stage 1): the LLM frozen; feature decoders (when distillation is on), projection and fine adapter
+"""tokenizer (stage 1): the LLM frozen; the shared feature head (when distillation is on), projection and fine adapter
 train with L_LM + lambda_KL alpha(t) L_KL (Sec. Scene Understanding with Gaussian World Tokens, Training Strategy).
 
 The tiny LLM flavor is built here (a random Qwen3-VL config and a byte-level BPE tokenizer trained on the training
@@ -12,11 +12,10 @@ from __future__ import annotations
 from gdwm.stage import StageContext, stage
 from model_zoo import registry
 from model_zoo.llm.qwen3_vl import WorldLLM
-from pipelines.data.reader import GSQADataset
 from pipelines.understanding.config import TokenizerStageConfig
-from pipelines.understanding.data import load_samples, training_corpus
+from pipelines.understanding.data import training_corpus
 from pipelines.understanding.model import WORLD_FILE, build_world_model, load_world_model
-from pipelines.understanding.stage_common import MODEL_CONFIG, components, finish, log_skipped, run_training
+from pipelines.understanding.stage_common import MODEL_CONFIG, components, finish, run_training, training_samples
 
 
 @stage("tokenizer", "2", config=[*MODEL_CONFIG, "stage.tokenizer"], upstream=["distill"], resources="train",
@@ -28,9 +27,7 @@ def tokenizer(ctx: StageContext) -> dict:
     if cfg.source:  # from the model zoo: nothing trains
         model = load_world_model(ctx.zoo_path(cfg.source))
         return finish(ctx, model, cfg, scene_dirs, {"train_samples": 0, "trained": 0.0})
-    ds = GSQADataset(ctx.data_root)
-    train, skipped = load_samples(ds, "train", scene_dirs, need_gaussians=comp.world.gaussian_tokens)
-    log_skipped(ctx, "train", skipped)
+    train = training_samples(ctx, scene_dirs)
     init = ctx.checkpoint_dir / "init"
     if not (init / WORLD_FILE).is_file():  # a resumed attempt reuses the same initial model
         if comp.llm.tiny:

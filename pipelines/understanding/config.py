@@ -22,11 +22,13 @@ class WorldConfig:
     gaussian_tokens: bool = True
     """Insert K_f Gaussian world tokens Z_G (False: the conference table's image-only "Gaussian: No" rows)."""
     train_decoder: bool = True
-    """Foundation-feature distillation on: the per-scene feature decoders D_F train with the adapter.
+    """Foundation-feature distillation on: the feature decoding trains with the adapter, through one feature head
+    shared by every scene after the frozen per-scene D_F (so held-out scenes use the trained parameters too).
     False (journal rows 1-4): the decoded features are frozen inputs, like the conference's LangSplat features."""
     trajectory_frames: int = 4
-    """Ego-trajectory prior of the driving-aware selector: past ego positions over this many frames, extrapolated
-    as far ahead at constant velocity, in the current ego frame (no future ground truth enters the input)."""
+    """Ego-trajectory prior of the driving-aware selector with ``model.selector.path=extrapolated``: past ego
+    positions over this many frames, extrapolated as far ahead at constant velocity, in the current ego frame (no
+    future ground truth enters the input)."""
     weather: str = "clear"
     """Which weather variant of the images the LLM sees."""
 

@@ -15,7 +15,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipelines.data.layout import GAUSS_TOKEN, DataError
+from model_zoo.config import PathSource, SelectorConfig
+from model_zoo.selectors import route_path
+from pipelines.data.layout import GAUSS_TOKEN, ROUTES_FILE, TASKS, DataError
 from pipelines.data.reader import GSQADataset, gaussians_from_table, read_arrow
 
 log = logging.getLogger(__name__)
@@ -73,6 +75,19 @@ def load_samples(
                 continue
         samples.append(s)
     return samples, skipped
+
+
+def row_samples(ds: GSQADataset, split: str, scene_dirs: Mapping[str, Path]) -> tuple[list[QASample], Counter]:
+    """The ``split`` samples a stage trains or monitors on, the same for every row of a table: those whose frame has
+    Gaussians and whose instruction has the placeholder, whether or not the row reads Gaussian tokens (an
+    image-only row on other samples than the Gaussian rows would differ from them in its data as well)."""
+    return load_samples(ds, split, scene_dirs, need_gaussians=True)
+
+
+def task_counts(samples: Sequence[QASample]) -> dict[str, int]:
+    """Samples per task family, every family of the paper's QA listed (0 when it has none)."""
+    counts = Counter(s.task for s in samples)
+    return {t: counts[t] for t in (*TASKS, *sorted(set(counts) - set(TASKS)))}
 
 
 def gaussians_path(scene_dir: Path, frame: int) -> Path:
@@ -135,26 +150,47 @@ class FrameStore:
         self.capacity = capacity
         self._gauss: OrderedDict[tuple[str, int], dict[str, torch.Tensor]] = OrderedDict()
         self._poses: dict[str, np.ndarray] = {}
+        self._routes: dict[str, list] | None = None
 
     def gaussians(self, scene: str, frame: int) -> dict[str, torch.Tensor]:
-        """xyz/scale [N,3], rotation [N,4], opacity [N], code [N,C] of one frame (ego frame), plus trajectory [T,2]."""
+        """xyz/scale [N,3], rotation [N,4], opacity [N], code [N,C] of one frame (ego frame); the selector's path is
+        ``selector_path``."""
         key = (scene, frame)
         if key in self._gauss:
             self._gauss.move_to_end(key)
             return self._gauss[key]
         path = gaussians_path(self.scene_dirs[scene], frame)
         arrays = gaussians_from_table(read_arrow(path, f"{scene}/frame_{frame:03d} distilled gaussians"))
-        if scene not in self._poses:
-            self._poses[scene] = self.ds.scene(scene).ego_poses
         out = {
             k: torch.from_numpy(np.array(arrays[k], dtype=np.float32)) for k in ("xyz", "scale", "rotation", "opacity")
         }
         out["code"] = torch.from_numpy(np.array(arrays["feature"], dtype=np.float32))
-        out["trajectory"] = torch.from_numpy(ego_trajectory_xy(self._poses[scene], frame, self.trajectory_frames))
         self._gauss[key] = out
         if len(self._gauss) > self.capacity:
             self._gauss.popitem(last=False)
         return out
+
+    def selector_path(self, scene: str, frame: int, cfg: SelectorConfig) -> torch.Tensor:
+        """[T, 2] ego path of the driving-aware selector at ``frame`` (``cfg.path``), in that frame's ego frame.
+
+        Only the poses up to ``frame`` are read, and the route comes from the dataset (``routes.json``),
+        so no recorded future pose reaches the selection (the leakage policy of ``PathSource``).
+        """
+        if scene not in self._poses:
+            self._poses[scene] = self.ds.scene(scene).ego_poses
+        known = self._poses[scene][: frame + 1]
+        if cfg.path == PathSource.extrapolated:
+            return torch.from_numpy(ego_trajectory_xy(known, frame, self.trajectory_frames))
+        if self._routes is None:
+            path = self.ds.root / ROUTES_FILE
+            self._routes = json.loads(path.read_text()) if path.is_file() else {}
+        if scene not in self._routes:
+            raise DataError(
+                f"{self.ds.root}: no planned route for {scene} ({ROUTES_FILE}), which model.selector.path=route "
+                f"follows; rebuild the dataset with a builder that records routes (synthetic_mini does), or set "
+                f"model.selector.path=extrapolated"
+            )
+        return torch.from_numpy(route_path(np.asarray(self._routes[scene]), known[frame], cfg.route_ahead_m))
 
     def images(self, sample: QASample) -> list[np.ndarray]:
         frame = self.ds.scene(sample.scene).frame(sample.frame)

@@ -6,7 +6,8 @@ prefix-LM loss on response tokens of X_in = Concat(V, Z_G, T).
 Saved as a directory (what the tokenizer and lora stages publish and inference loads)::
 
     world.json     component configs, feature width, per-scene decoder configs, LoRA settings
-    adapter.pt     state dict of the per-scene D_F, the projection and the fine adapter (weights_only=True)
+    adapter.pt     state dict of the per-scene D_F, the shared feature head, the projection and the fine adapter
+                   (weights_only=True)
     llm/           tiny flavor: the LLM and its tokenizer (full runs reference llm.path instead)
     lora/          peft adapter of the lora stage
 
@@ -82,6 +83,26 @@ def _gather(t_N: torch.Tensor, index_K: torch.Tensor, mask_K: torch.Tensor, fill
     return torch.where(keep, picked, torch.full_like(picked, fill))
 
 
+class FeatureHead(nn.Module):
+    """What training fine-tunes of the feature decoding, shared by every scene: ``f + MLP(f)`` on the per-scene
+    D_F's output, the MLP's last layer zero-initialised so an untrained head is the identity.
+
+    Each scene's D_F is fitted by the distill stage on that scene alone (a code space of its own), so it stays
+    frozen here: fine-tuning it would train only the training scenes' decoders and leave held-out scenes with
+    untrained ones. The head is one module for all scenes, so a held-out scene's features pass through exactly the
+    parameters the training scenes trained.
+    """
+
+    def __init__(self, d_f: int, hidden: int):
+        super().__init__()
+        self.mlp = nn.Sequential(nn.Linear(d_f, hidden), nn.GELU(), nn.Linear(hidden, d_f))
+        nn.init.zeros_(self.mlp[-1].weight)
+        nn.init.zeros_(self.mlp[-1].bias)
+
+    def forward(self, f_NC: torch.Tensor) -> torch.Tensor:
+        return f_NC + self.mlp(f_NC)
+
+
 def _scene_key(scene: str) -> str:
     """ModuleDict keys may not contain dots."""
     return re.sub(r"[^0-9A-Za-z_]", "_", scene)
@@ -101,12 +122,16 @@ class WorldModel(nn.Module):
         if len(widths) > 1:
             raise ValueError(f"scenes' feature decoders disagree on d_f: {sorted(widths)} (one encoder per run)")
         self.feature_dim = widths.pop() if widths else 1
+        hidden = max((c.hidden for c in self.decoder_cfgs.values()), default=FeatureAEConfig.hidden)
+        self.feature_head = FeatureHead(self.feature_dim, hidden)
         self.projection = AttributeProjection(comp.projection, llm.hidden_size, self.feature_dim)
         self.fine = registry.build("fine_adapter", comp.fine_adapter.name, comp.fine_adapter, llm.hidden_size)
         self.align = registry.build("alignment", comp.alignment.name, comp.alignment)
         self.selector = registry.build("selector", comp.selector.name, comp.selector)
-        self.decoders.requires_grad_(comp.world.train_decoder)
+        self.decoders.requires_grad_(False)  # per-scene: see FeatureHead
+        self.feature_head.requires_grad_(comp.world.train_decoder)
         if not comp.world.gaussian_tokens:  # image-only: the adapter exists (one saved layout) but never trains
+            self.feature_head.requires_grad_(False)
             self.projection.requires_grad_(False)
             self.fine.requires_grad_(False)
         self.peft: Any = None
@@ -155,13 +180,17 @@ class WorldModel(nn.Module):
             "gaussian": gaussian,
         }
 
-    def _decoded(self, scene: str, code_KZ: torch.Tensor) -> torch.Tensor:
+    def feature_decoder(self, scene: str) -> nn.Sequential:
+        """The decoding chain of ``scene``'s codes: its frozen D_F, then the feature head every scene shares."""
         key = _scene_key(scene)
         if key not in self.decoders:
             raise KeyError(
                 f"{scene}: no feature decoder D_F for this scene (the model has {sorted(self.decoder_cfgs)})"
             )
-        return self.decoders[key](code_KZ)
+        return nn.Sequential(self.decoders[key], self.feature_head)
+
+    def _decoded(self, scene: str, code_KZ: torch.Tensor) -> torch.Tensor:
+        return self.feature_decoder(scene)(code_KZ)
 
     def candidates(self, samples: Sequence[QASample], store: FrameStore, e_BH: torch.Tensor) -> dict[str, torch.Tensor]:
         """Coarse selection per sample, gathered into [B, K_c, ...] tensors with the padding mask."""
@@ -169,7 +198,8 @@ class WorldModel(nn.Module):
         rows = []
         for b, s in enumerate(samples):
             g = store.gaussians(s.scene, s.frame)
-            inputs = SelectorInputs(g["xyz"], g["scale"], g["rotation"], g["opacity"], trajectory=g["trajectory"])
+            path = store.selector_path(s.scene, s.frame, self.comp.selector) if self.selector.needs_trajectory else None
+            inputs = SelectorInputs(g["xyz"], g["scale"], g["rotation"], g["opacity"], trajectory=path)
             if self.selector.needs_similarity:
                 inputs.similarity = self._text_similarity(s.scene, g, e_BH[b])
             sel = self.selector(inputs, generator=torch.Generator().manual_seed(self.comp.selector.seed))
@@ -272,7 +302,12 @@ class WorldModel(nn.Module):
         self.peft = get_peft_model(self.llm.model, lora)
 
     def adapter_modules(self) -> dict[str, nn.Module]:
-        return {"decoders": self.decoders, "projection": self.projection, "fine": self.fine}
+        return {
+            "decoders": self.decoders,
+            "feature_head": self.feature_head,
+            "projection": self.projection,
+            "fine": self.fine,
+        }
 
     def freeze_llm(self) -> None:
         """Stage 1: the LLM is frozen (LoRA weights, once added, stay trainable)."""
@@ -291,6 +326,8 @@ class WorldModel(nn.Module):
         for k, m in self.adapter_modules().items():
             prefix = f"{k}."
             sub = {n[len(prefix) :]: t for n, t in state.items() if n.startswith(prefix)}
+            if k == "feature_head" and not sub:
+                continue  # saved before the shared head existed: the identity head reproduces that model
             m.load_state_dict(sub)
 
     def lora_state(self) -> dict[str, torch.Tensor]:

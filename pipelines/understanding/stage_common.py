@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import asdict
 from pathlib import Path
 
 from gdwm.stage import StageContext
 from pipelines.data.reader import GSQADataset
 from pipelines.understanding.config import TrainConfig
-from pipelines.understanding.data import FrameStore, load_samples
+from pipelines.understanding.data import FrameStore, QASample, row_samples, task_counts
 from pipelines.understanding.infer import write_predictions
 from pipelines.understanding.model import Components, WorldModel, load_world_model
 from pipelines.understanding.train import evaluate, train_loop
+
+log = logging.getLogger(__name__)
 
 MODEL_KEYS = ("world", "selector", "projection", "fine_adapter", "alignment", "llm")
 MODEL_CONFIG = [f"model.{k}" for k in MODEL_KEYS]
@@ -26,6 +29,22 @@ def log_skipped(ctx: StageContext, split: str, skipped: dict) -> None:
     """Samples a stage could not use are counted and logged, never dropped silently."""
     for reason, n in sorted(skipped.items()):
         ctx.tracker.log_metrics({f"skipped/{split}/{reason}": float(n)})
+
+
+def training_samples(ctx: StageContext, scene_dirs: dict[str, Path]) -> list[QASample]:
+    """The training split of the stage (``row_samples``): skips logged as metrics, and the samples per task family
+    as the params ``tasks/<family>``, so a table's rows show they trained on the same tasks."""
+    train, skipped = row_samples(GSQADataset(ctx.data_root), "train", scene_dirs)
+    log_skipped(ctx, "train", skipped)
+    if missing := skipped.get("instruction_without_gauss_placeholder"):
+        log.warning(
+            "%s: %d training samples have no <gauss> placeholder and no row trains on them (a synthetic_mini "
+            "built by generator version 1 lacks it in trajectory QA: rebuild it with `gdwm data synth`)",
+            ctx.name,
+            missing,
+        )
+    ctx.tracker.log_params({f"tasks/{t}": n for t, n in task_counts(train).items()})
+    return train
 
 
 def run_training(
@@ -75,7 +94,7 @@ def finish(
     """Held-out monitor, then the saved model and its metrics in the stage output, registered in the model zoo as
     component ``register`` (e.g. ``gdwm-lora``) when given."""
     ds = GSQADataset(ctx.data_root)
-    val, skipped = load_samples(ds, "val", scene_dirs, need_gaussians=model.gaussian_tokens)
+    val, skipped = row_samples(ds, "val", scene_dirs)
     log_skipped(ctx, "val", skipped)
     store = FrameStore(ds, scene_dirs, model.comp.world.weather, model.comp.world.trajectory_frames)
     ev = evaluate(model, val, store, cfg)

@@ -17,7 +17,7 @@ import torch
 from gdwm.training import TrainSession, warmup_cosine_lr
 from pipelines.data.reader import GSQADataset
 from pipelines.understanding.config import LoraStageConfig, TrainConfig
-from pipelines.understanding.data import FrameStore, QASample, TaskSampler, load_samples
+from pipelines.understanding.data import FrameStore, QASample, TaskSampler, row_samples
 from pipelines.understanding.infer import predict
 from pipelines.understanding.model import WorldModel, autocast, load_world_model
 
@@ -43,7 +43,7 @@ def train_loop(s: TrainSession) -> None:
     device = ray.train.torch.get_device() if s.world_size > 1 or torch.cuda.is_available() else torch.device("cpu")
     ds = GSQADataset(c["data_root"])
     scene_dirs = {k: Path(v) for k, v in c["scene_dirs"].items()}
-    samples, _ = load_samples(ds, "train", scene_dirs, need_gaussians=model.gaussian_tokens)
+    samples, _ = row_samples(ds, "train", scene_dirs)
     store = FrameStore(ds, scene_dirs, model.comp.world.weather, model.comp.world.trajectory_frames)
     sampler = TaskSampler(samples, cfg.task_alpha, c["seed"])
     params = model.trainable_parameters()

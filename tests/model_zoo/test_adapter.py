@@ -116,8 +116,9 @@ def test_registered_variant_names():
 def test_every_fine_adapter_gives_k_f_tokens(name: str):
     torch.manual_seed(0)
     adapter = registry.build("fine_adapter", name, FineAdapterConfig(name=name, k_f=6, heads=4), H)
-    g = torch.randn(B, K, H)
-    z, z_mask = adapter(g, torch.ones(B, K, dtype=torch.bool), *_text())
+    k = 6 if name == "identity" else K  # identity takes exactly K_f candidates
+    g = torch.randn(B, k, H)
+    z, z_mask = adapter(g, torch.ones(B, k, dtype=torch.bool), *_text())
     assert z.shape == (B, 6, H) and z_mask.shape == (B, 6) and z_mask.dtype == torch.bool
     assert z_mask.all()
 
@@ -218,15 +219,25 @@ def test_query_xattn_parameters_and_heads_check():
     assert str(e.value) == "fine_adapter/query_xattn: heads=5 must divide the hidden size 32"
 
 
-def test_identity_passes_the_first_k_f_through_and_pads():
+def test_identity_passes_k_f_candidates_through_unchanged():
     g = torch.randn(2, 4, 8)
     mask = torch.tensor([[True, True, False, True], [True, False, False, False]])
     text = (torch.randn(2, 3, 8), torch.ones(2, 3, dtype=torch.bool))
-    z, z_mask = registry.build("fine_adapter", "identity", FineAdapterConfig(k_f=3), 8)(g, mask, *text)
-    assert torch.equal(z, g[:, :3]) and torch.equal(z_mask, mask[:, :3])
-    z, z_mask = registry.build("fine_adapter", "identity", FineAdapterConfig(k_f=6), 8)(g, mask, *text)
-    assert torch.equal(z[:, :4], g) and z[:, 4:].abs().sum().item() == 0.0
-    assert z_mask.tolist() == [[True, True, False, True, False, False], [True, False, False, False, False, False]]
+    z, z_mask = registry.build("fine_adapter", "identity", FineAdapterConfig(k_f=4), 8)(g, mask, *text)
+    assert torch.equal(z, g) and torch.equal(z_mask, mask)
+
+
+@pytest.mark.parametrize("k_c", [3, 6])
+def test_identity_refuses_k_c_other_than_k_f(k_c: int):
+    """Keeping the first K_f of more candidates dropped the uniform branch of topk_uniform (issue 17)."""
+    adapter = registry.build("fine_adapter", "identity", FineAdapterConfig(k_f=4), 8)
+    text = (torch.randn(2, 3, 8), torch.ones(2, 3, dtype=torch.bool))
+    with pytest.raises(ValueError) as e:
+        adapter(torch.randn(2, k_c, 8), torch.ones(2, k_c, dtype=torch.bool), *text)
+    assert str(e.value) == (
+        f"fine_adapter/identity: got K_c={k_c} candidates for K_f=4 world tokens; "
+        "model.selector.k_c must equal model.fine_adapter.k_f"
+    )
 
 
 def test_fine_adapter_names_a_bad_mask():

@@ -269,3 +269,44 @@ def test_qwen_bfloat16_tower_still_returns_float32_and_dtype_is_checked():
     with pytest.raises(ValueError) as e:
         registry.build("encoder", "qwen3_vl_vision", QwenVisionConfig(tiny=True, dtype="bf16"))
     assert str(e.value) == "qwen3_vl_vision: dtype 'bf16' is not a torch floating-point dtype name"
+
+
+# ---------------------------------------------------------------- langsplat_proxy (the Distillation ✗ arm)
+
+
+def _blocks() -> np.ndarray:
+    """Four flat colour quadrants: four regions, each one colour."""
+    img = np.zeros((H, W, 3), np.uint8)
+    img[: H // 2, : W // 2] = (200, 40, 40)
+    img[: H // 2, W // 2 :] = (40, 200, 40)
+    img[H // 2 :, : W // 2] = (40, 40, 200)
+    img[H // 2 :, W // 2 :] = (220, 220, 220)
+    return img
+
+
+def test_langsplat_proxy_is_constant_per_region_and_unit_norm():
+    enc = registry.build("encoder", "langsplat_proxy")
+    feat = enc.encode(_blocks())
+    assert feat.shape == (H, W, 64) and enc.valid_mask(H, W).all()
+    torch.testing.assert_close(feat.norm(dim=-1), torch.ones(H, W))
+    # inside each quadrant (the smoothed pixels on a colour edge form thin regions of their own)
+    quads = [feat[2:43, 2:78], feat[2:43, 82:-2], feat[47:-2, 2:78], feat[47:-2, 82:-2]]
+    for q in quads:  # a mask-level feature: one vector per region, as LangSplat's
+        assert torch.equal(q, q[:1, :1].expand_as(q))
+    assert len({tuple(q[0, 0].tolist()) for q in quads}) == 4
+    smaller = enc.encode(_blocks(), out_hw=(9, 16))  # nearest: never a blend of two regions
+    assert set(map(tuple, smaller.reshape(-1, 64).tolist())) <= set(map(tuple, feat.reshape(-1, 64).tolist()))
+
+
+def test_langsplat_proxy_is_another_encoder_than_the_foundation_one(daisy):
+    """The ablation's ✗ arm must not distil the ✓ arm's features: different maps of the same image, deterministic."""
+    img = _noise(3)
+    proxy = registry.build("encoder", "langsplat_proxy")
+    a = proxy.encode(img)
+    assert torch.equal(a, registry.build("encoder", "langsplat_proxy").encode(img))
+    d = daisy.encode(img)
+    assert a.shape == d.shape
+    assert (F.cosine_similarity(a, d, dim=-1).abs() < 0.9).float().mean() > 0.95
+    assert len(torch.unique(a.reshape(-1, 64), dim=0)) < H * W / 10  # regions, not pixels
+    assert len(torch.unique(d.reshape(-1, 64), dim=0)) > H * W / 2
+    pickle.loads(pickle.dumps(proxy))  # ships to Ray workers

@@ -337,3 +337,54 @@ def test_driving_aware_matches_the_numpy_reference(k_c, voxel_size, coverage_fir
     ref = driving_aware_reference(g, cfg)
     assert int(sel.mask.sum()) == len(ref) == k_c
     assert set(chosen(sel)) == set(ref.tolist())
+
+
+# ---- the path of T_i: the planned route (issue 17) --------------------------------------------------------------
+def _pose(x: float, y: float, yaw: float):
+    import numpy as np
+
+    m = np.eye(4)
+    m[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+    m[:2, 3] = [x, y]
+    return m
+
+
+def test_route_path_runs_ahead_of_the_ego_along_the_route_in_its_lane():
+    import numpy as np
+
+    route = np.stack([np.arange(-10.0, 100.0), np.full(110, -1.75)], 1)  # a lane centreline along world +x
+    on_lane = selectors.route_path(route, _pose(20.0, -1.75, 0.0), ahead_m=5.0)
+    np.testing.assert_allclose(on_lane, [[0, 0], [1, 0], [2, 0], [3, 0], [4, 0], [5, 0]], atol=1e-5)
+    # 3.5 m left of the route (after a lane change), turned 90 degrees: the path keeps the ego's lane, ahead of it
+    # in the world, which the ego frame sees on its right
+    left = selectors.route_path(route, _pose(20.0, 1.75, math.pi / 2), ahead_m=2.0)
+    np.testing.assert_allclose(left, [[0, 0], [0, -1], [0, -2]], atol=1e-5)
+
+
+def test_route_path_follows_a_bend_and_stops_at_the_routes_end():
+    import numpy as np
+
+    r = 50.0
+    th = np.linspace(0, 1.0, 200)
+    route = np.stack([r * np.sin(th), r - r * np.cos(th)], 1)  # bends left
+    path = selectors.route_path(route, _pose(0.0, 0.0, 0.0), ahead_m=20.0)
+    assert path.shape == (21, 2)
+    np.testing.assert_allclose(np.hypot(path[:, 0], path[:, 1] - r), r, atol=0.02)  # on the circle
+    assert path[-1, 1] > 3.5  # bent to the left
+    end = selectors.route_path(route, _pose(*route[-41], 0.0), ahead_m=20.0)  # 40 x 0.25 m of route left
+    assert len(end) == 11 and abs(np.hypot(*end[-1]) - 2 * r * math.sin(0.1)) < 0.01  # a 10 m arc's chord
+
+
+def test_route_path_names_a_degenerate_route():
+    import numpy as np
+
+    with pytest.raises(ValueError) as e:
+        selectors.route_path(np.array([[1.0, 2.0], [1.0, 2.0]]), _pose(0, 0, 0), ahead_m=10.0)
+    assert str(e.value) == "route_path: the route needs >= 2 distinct finite points, got 1"
+
+
+def test_selector_path_is_a_checked_enum_defaulting_to_the_route():
+    assert SelectorConfig().path == "route" and SelectorConfig(path="extrapolated").path == "extrapolated"
+    with pytest.raises(ValueError) as e:
+        SelectorConfig(name="driving_aware", path="future")
+    assert str(e.value) == "SelectorConfig 'driving_aware': path must be one of ['route', 'extrapolated'], got 'future'"

@@ -9,6 +9,7 @@ random draw is seeded by (seed, scene, frame, camera, weather), so a seed fixes 
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import multiprocessing
 import os
@@ -21,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from pipelines.data.layout import (
+    ROUTES_FILE,
     DataError,
     DatasetWriter,
     content_params,
@@ -35,13 +37,14 @@ from pipelines.data.synth.lidar import beam_directions, sweep
 from pipelines.data.synth.planning import WINDOW
 from pipelines.data.synth.qa import FrameTruth, SceneTruth, scene_qa
 from pipelines.data.synth.render import GBuffer, render_gbuffer, shade_clear
+from pipelines.data.synth.route import planned_route
 from pipelines.data.synth.scenarios import generate_scene, lateral_truth
 from pipelines.data.synth.scene import Scene
 from pipelines.data.synth.weather import render_weather
 
 log = logging.getLogger(__name__)
 SOURCE = "synthetic_mini"
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 """Bump when the generator's output changes for the same config."""
 _BASE_TIME_US = 1_600_000_000_000_000
 
@@ -140,11 +143,13 @@ class _SceneSink:
 
 
 def _scene_job(cfg: SynthConfig, index: int, tmp: Path, split: str, horizon: int) -> tuple[dict, list, int]:
-    """Generate, render and write scene ``index``; returns (scenario facts, table rows, QA count)."""
+    """Generate, render and write scene ``index``; returns (scenario facts and the planned route, table rows, QA
+    count)."""
     scene = generate_scene(cfg, index)
     sink = _SceneSink(tmp)
     n_qa = _write_scene(sink, cfg, scene, split, horizon)
-    return {"scenario": scene.scenario, **scene.meta}, sink.rows, n_qa
+    route = np.round(planned_route(scene), 3).tolist()
+    return {"scenario": scene.scenario, **scene.meta, "route": route}, sink.rows, n_qa
 
 
 def _write_scene(w: _SceneSink, cfg: SynthConfig, scene: Scene, split: str, horizon: int) -> int:
@@ -259,11 +264,16 @@ def build(cfg: Any, root: str | Path, source: str | None = None, overwrite: bool
         if workers > 1:
             # spawn, not fork: the caller may hold threads (Ray, torch) that fork would copy half-alive.
             ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+            pool = ProcessPoolExecutor(workers, mp_context=ctx)
+            try:
                 results = list(pool.map(_scene_job, *zip(*jobs, strict=True)))
+            finally:  # interrupted (SIGTERM, Ctrl-C, a failed scene): drop the queued scenes, then the temp dir goes
+                pool.shutdown(wait=True, cancel_futures=True)
         else:
             results = [_scene_job(*job) for job in jobs]
+        routes = {}
         for (_, i, _, split, _), (facts, rows, n_qa) in zip(jobs, results, strict=True):
+            routes[f"scene-{i:04d}"] = facts.pop("route")
             for table, row in rows:
                 w.add(table, **row)
             scenarios.append(facts)
@@ -283,4 +293,6 @@ def build(cfg: Any, root: str | Path, source: str | None = None, overwrite: bool
             "lidar_mount": list(LIDAR_MOUNT),
             "skipped_tasks": skipped,
         }
+        # a file, not a dataset.json key: the dataset fingerprint (and so every stage key) covers it
+        w.path(ROUTES_FILE).write_text(json.dumps(routes, sort_keys=True))
     return root

@@ -2,8 +2,10 @@
 
 QA are built from the rows exactly as stored (float32 values), so anyone can re-derive each
 answer from ``boxes3d``/``boxes2d``/``ego_poses``. Every record's ``gt`` column is the JSON of
-the facts its answer came from. Human turns start with "Based on <gauss>, ..." except trajectory
-QA, which mirrors the paper's example. Answer formats (evaluation parses them):
+the facts its answer came from. Every human turn starts with "Based on <gauss>, ...": trajectory QA
+is the paper's example with the placeholder put in front, as the public release's loader inserts it,
+so Gaussian and image-only models train on the same task families. Answer formats (evaluation
+parses them):
 
 - ``rdp`` distance (category ``2D_perception_infos``):
   "The object is approximately {d:.1f} meters away from the ego vehicle.", d = Euclidean
@@ -293,7 +295,8 @@ def _trajectory(rec: _Records, start: int) -> None:
         f,
         "traj",
         "trajectory_prediction",
-        f"There are last {planning.HISTORY} frames of ego trajectory: {planning.format_poses(history)}. "
+        f"Based on {GAUSS_TOKEN}, there are last {planning.HISTORY} frames of ego trajectory: "
+        f"{planning.format_poses(history)}. "
         f"Predict the future {planning.FUTURE}-frame ego trajectory.",
         planning.format_poses(future),
         list(CAMERAS),

@@ -72,6 +72,8 @@ class LayoutConfig:
     """Order of discovered leaves inside a group, as fnmatch patterns (e.g. ``fd_*``); the rest follow, sorted."""
     precision: int = 2
     """Decimals shown; a column whose values all print the same gets no marks."""
+    encoders: list[str] = field(default_factory=list)
+    """Trial params naming the encoders a row used (e.g. ``stage.distill.encoder``): the notes print them per row."""
 
 
 @dataclass

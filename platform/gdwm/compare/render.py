@@ -1,4 +1,4 @@
-"""The table as a rich table, Markdown, LaTeX (booktabs) and CSV; each carries the table's legend."""
+"""The table as a rich table, Markdown, LaTeX (booktabs) and CSV; each carries the table's legend and notes."""
 
 from __future__ import annotations
 
@@ -19,8 +19,10 @@ def _cell(table: Table, i: int, metric: str) -> tuple[str, str | None]:
 
 
 def to_rich(table: Table) -> RichTable:
-    """Group names head the first column of their group; bold = best, underlined = second; the legend as caption."""
-    t = RichTable(title=table.title, header_style="bold", caption=table.legend or None, caption_justify="left")
+    """Group names head the first column of their group; bold = best, underlined = second; legend and notes as
+    caption."""
+    caption = Text("\n".join(table.caption)) if table.caption else None  # Text: a "[" in a note is no markup
+    t = RichTable(title=table.title, header_style="bold", caption=caption, caption_justify="left")
     top = "\n" if any(c.group for c in table.columns) else ""  # a first header line for the group names
     for name in ("row", *table.factors):
         t.add_column(top + name)
@@ -47,7 +49,8 @@ def _md_escape(s: str) -> str:
 
 
 def to_markdown(table: Table) -> str:
-    """GitHub Markdown: ``**best**``, ``<u>second</u>``; headers read ``<group> <header> ↑``; the legend under it."""
+    """GitHub Markdown: ``**best**``, ``<u>second</u>``; headers read ``<group> <header> ↑``; legend and notes under
+    it, a paragraph each."""
     head = ["row", *table.factors, *(c.label for c in table.columns)]
     head += ["note"] if table.has_notes else []
     lines = [f"**{_md_escape(table.title)}**", "", "| " + " | ".join(map(_md_escape, head)) + " |"]
@@ -60,7 +63,8 @@ def to_markdown(table: Table) -> str:
             cells.append(f"**{text}**" if mark == BEST else f"<u>{text}</u>" if mark == SECOND else text)
         cells += [r.note] if table.has_notes else []
         lines.append("| " + " | ".join(map(_md_escape, cells)) + " |")
-    lines += ["", _md_escape(table.legend)] if table.legend else []
+    for line in table.caption:
+        lines += ["", _md_escape(line)]
     return "\n".join(lines) + "\n"
 
 
@@ -73,6 +77,7 @@ _TEX = {
     "↑": r"$\uparrow$",
     "↓": r"$\downarrow$",
     "±": r"$\pm$",
+    "→": r"$\rightarrow$",
     "α": r"$\alpha$",
 }
 _TEX_RE = re.compile("|".join(map(re.escape, _TEX)))
@@ -97,13 +102,14 @@ def _tex_cell(table: Table, i: int, metric: str) -> str:
 
 
 def to_latex(table: Table) -> str:
-    """A booktabs ``tabular`` (needs booktabs); group headers as ``\\multicolumn`` over a ``\\cmidrule``; the legend as
-    a comment above it and a ``\\caption{...}`` line (commented, to paste into the float) below."""
+    """A booktabs ``tabular`` (needs booktabs); group headers as ``\\multicolumn`` over a ``\\cmidrule``; legend and
+    notes as comments above it and in a ``\\caption{...}`` line (commented, to paste into the float) below."""
     lead = 1 + len(table.factors)
     spec = "l" * lead + "c" * len(table.columns) + ("l" if table.has_notes else "")
     lines = [
         f"% {tex_escape(table.title)} (needs \\usepackage{{booktabs}})",
         *([f"% Legend: {table.legend}"] if table.legend else []),
+        *(f"% Note: {n}" for n in table.notes),
         f"\\begin{{tabular}}{{{spec}}}",
         r"\toprule",
     ]
@@ -126,7 +132,8 @@ def to_latex(table: Table) -> str:
         cells += [tex_escape(r.note)] if table.has_notes else []
         lines.append(" & ".join(cells) + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}"]
-    lines += [f"% \\caption{{{tex_escape(table.title)}. {tex_escape(table.legend)}}}"] if table.legend else []
+    if table.caption:
+        lines.append(f"% \\caption{{{tex_escape(table.title)}. {tex_escape(' '.join(table.caption))}}}")
     return "\n".join(lines) + "\n"
 
 
@@ -136,7 +143,7 @@ CSV_STATS = ("std", "n", "ci_low", "ci_high", "mark")
 
 def to_csv(table: Table) -> str:
     """One line per row: label, run id, status, factors, then per metric its mean, std, n, CI and mark (full
-    precision; empty = missing), note; the legend as a last line starting with ``#`` (pandas: ``comment="#"``)."""
+    precision; empty = missing), note; legend and notes as last lines starting with ``#`` (pandas: ``comment="#"``)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     metrics = [[c.metric, *(f"{c.metric}/{s}" for s in CSV_STATS)] for c in table.columns]
@@ -152,6 +159,6 @@ def to_csv(table: Table) -> str:
             stats = (cell.mean, cell.std, cell.n, cell.ci_low, cell.ci_high)
             values += ["" if v is None else repr(v) for v in stats] + [table.marks.get((i, c.metric), "")]
         w.writerow([r.label, r.run_id, r.status, *factors, *values, r.note])
-    if table.legend:
-        buf.write(f"# {table.legend}\n")
+    for line in table.caption:
+        buf.write(f"# {line}\n")
     return buf.getvalue()

@@ -13,6 +13,7 @@ from html import escape
 from matplotlib.figure import Figure  # the object API renders with Agg and leaves pyplot's global state alone
 
 from gdwm.compare.layout import Direction
+from gdwm.compare.rounding import fmt, round_half_up
 from gdwm.compare.table import BEST, SECOND, Table, normalise
 
 Curves = dict[str, list[tuple[int, float]]]
@@ -200,6 +201,8 @@ def table_html(table: Table, ui_url: str) -> str:
         tds += f'<td class="note">{escape(r.note)}</td>' if notes else ""
         body.append(f'<tr class="{"failed" if r.failed else "ok"}">{tds}</tr>')
     legend = f'<p class="legend" id="legend">{escape(table.legend)}</p>' if table.legend else ""
+    if table.notes:
+        legend += '<ul class="legend" id="notes">' + "".join(f"<li>{escape(n)}</li>" for n in table.notes) + "</ul>"
     return f'<table id="results">{_thead(table, notes)}<tbody>{"".join(body)}</tbody></table>{legend}'
 
 
@@ -213,11 +216,11 @@ def deltas_html(table: Table, base: int, ui_url: str) -> str:
         tds = f"<td>{_run_link(table, i, ui_url)}</td>"
         for j in cols:
             c, d = table.columns[j], deltas[i][j]
-            if d is None or round(d, table.precision) == 0:
+            if d is None or round_half_up(d, table.precision) == 0:
                 cls = "num"
             else:
                 cls = "num better" if (d > 0) == (c.direction is Direction.higher) else "num worse"
-            tds += f'<td class="{cls}">{"–" if d is None else f"{d:+.{table.precision}f}"}</td>'
+            tds += f'<td class="{cls}">{"–" if d is None else fmt(d, table.precision, sign=True)}</td>'
         body.append(f"<tr>{tds}</tr>")
     head = "".join(f"<th>{escape(table.columns[j].label)}</th>" for j in cols)
     return f'<table id="deltas"><thead><tr><th>row</th>{head}</tr></thead><tbody>{"".join(body)}</tbody></table>'
@@ -255,6 +258,7 @@ def html_report(table: Table, base: int, curves: dict[str, Curves], ui_url: str,
         f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>{escape(table.title)}</title>'
         f"<style>{_CSS}</style></head><body><h1>{escape(table.title)}</h1>"
         f'<p class="meta">{escape(selector)} · {escape(store)} · {len(table.rows)} rows · generated {generated}. '
-        "– = not logged; the legend under the table says what the cells and marks mean.</p>"
+        "– = not logged; the legend under the table says what the cells and marks mean, the notes which metrics are "
+        "official or approximate, which stand on proxy data and which encoders each row used.</p>"
         f"{table_html(table, ui_url)}{''.join(section)}</body></html>\n"
     )

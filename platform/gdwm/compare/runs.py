@@ -11,7 +11,10 @@ Tag conventions (set by ``gdwm run`` and the sweep):
 - a row's label is the tag ``gdwm.row`` (else the run name); its factors are the tags ``gdwm.factor.<Name>``;
 - a failed trial ends FAILED with tags ``gdwm.failed_stage`` and ``gdwm.error``; a row fails when all its trials do;
 - the stage runs a trial used (for training curves) are runs tagged ``gdwm.stage`` that are its children, carry
-  ``gdwm.trial=<run id>``, or that it links with a tag ``gdwm.stage_run.<stage>=<run id>``.
+  ``gdwm.trial=<run id>``, or that it links with a tag ``gdwm.stage_run.<stage>=<run id>``;
+- an evaluation stage run a trial links may label its metrics with params ``protocol/<metric>`` (``official`` or
+  ``approximate``) and ``proxy/<metric>`` (what stands in for the benchmark's data): the table's notes print them;
+- the trial's (and row's) params are its resolved config, flattened: the table's notes print the encoders from them.
 """
 
 from __future__ import annotations
@@ -29,6 +32,8 @@ ROW_KINDS = ("row", "run")
 TRIAL_KIND = "trial"
 FACTOR_PREFIX = "gdwm.factor."
 STAGE_LINK_PREFIX = "gdwm.stage_run."
+PROTOCOL_PARAM = "protocol/"
+PROXY_PARAM = "proxy/"
 
 
 class SelectionError(Exception):
@@ -56,6 +61,12 @@ class Trial:
     tags: dict[str, str] = field(default_factory=dict)
     samples: dict[str, SampleSet] = field(default_factory=dict)
     """Evaluation stage -> its per-sample predictions (``samples.load_samples`` fills it)."""
+    params: dict[str, str] = field(default_factory=dict)
+    """The trial run's params (its resolved config, flattened)."""
+    labels: dict[str, str] = field(default_factory=dict)
+    """Metric -> ``official`` | ``approximate``, as its evaluation stage run labelled it (``read_labels``)."""
+    proxy: dict[str, str] = field(default_factory=dict)
+    """Metric -> what stood in for the benchmark's data, where its evaluation said it was a proxy."""
 
     @property
     def failed(self) -> bool:
@@ -76,6 +87,14 @@ class Row:
     """One per seed, in seed order."""
     planned: int = 1
     """Seeds the row was meant to have (``gdwm.seeds``)."""
+    params: dict[str, str] = field(default_factory=dict)
+    """The row run's params (a row run logs its first trial's config)."""
+
+    def param(self, key: str) -> str | None:
+        """``key`` from the row's params, else from its first counted trial that has it."""
+        if key in self.params:
+            return self.params[key]
+        return next((t.params[key] for t in self.counted if key in t.params), None)
 
     @property
     def failed(self) -> bool:
@@ -112,7 +131,7 @@ class Selection:
 def _trial(r: dict) -> Trial:
     seed = r["tags"].get("gdwm.seed", "")
     number = int(seed) if seed.lstrip("-").isdigit() else None
-    return Trial(r["run_id"], number, r["status"], dict(r["metrics"]), dict(r["tags"]))
+    return Trial(r["run_id"], number, r["status"], dict(r["metrics"]), dict(r["tags"]), params=dict(r["params"]))
 
 
 def _row(backend: TrackingBackend, r: dict, factor_params: list[str], selector: str) -> Row:
@@ -128,6 +147,7 @@ def _row(backend: TrackingBackend, r: dict, factor_params: list[str], selector: 
     seeds = [s for s in tags.get("gdwm.seeds", "").split(",") if s.strip()] if children else []
     row = Row(r["run_id"], label, r["status"], backend.experiment_id, dict(r["metrics"]), factors, dict(tags), trials)
     row.planned = max(len(seeds), len(trials))
+    row.params = dict(r["params"])
     return row
 
 
@@ -207,7 +227,27 @@ def select(
             f"of {backend.uri}"
         )
     rows = [_row(backend, r, factor_params, selector) for r in found]
+    read_labels(backend, rows, selector)
     return Selection(name, selector, rows, sweep_run_id)
+
+
+def read_labels(backend: TrackingBackend, rows: list[Row], selector: str, chunk: int = 100) -> None:
+    """Fill ``labels`` and ``proxy`` of every trial from the ``protocol/`` and ``proxy/`` params of the stage runs
+    it links (one search per ``chunk`` linked runs)."""
+    trials = [t for r in rows for t in r.trials]
+    links = sorted({v for t in trials for k, v in t.tags.items() if k.startswith(STAGE_LINK_PREFIX)})
+    params: dict[str, dict[str, str]] = {}
+    for i in range(0, len(links), chunk):
+        ids = ", ".join(f"'{x}'" for x in links[i : i + chunk])
+        params |= {r["run_id"]: r["params"] for r in _search(backend, f"attributes.run_id IN ({ids})", selector)}
+    for t in trials:
+        for key, run_id in t.tags.items():
+            if key.startswith(STAGE_LINK_PREFIX):
+                for name, value in params.get(run_id, {}).items():
+                    if name.startswith(PROTOCOL_PARAM):
+                        t.labels[name[len(PROTOCOL_PARAM) :]] = value
+                    elif name.startswith(PROXY_PARAM):
+                        t.proxy[name[len(PROXY_PARAM) :]] = value
 
 
 def stage_runs(backend: TrackingBackend, run_id: str, tags: dict[str, str]) -> list[dict]:

@@ -26,6 +26,7 @@ import numpy as np
 from scipy import stats
 
 from gdwm.compare.layout import Direction
+from gdwm.compare.rounding import round_half_up
 
 BEST, SECOND = "best", "second"
 
@@ -267,7 +268,7 @@ def rank_marks(
 ) -> dict[int, str]:
     """``best`` for the top row and every row it is not significantly ``better`` than; ``second`` likewise among
     the rest. No marks when every value prints the same (at ``precision``)."""
-    if len({round(v, precision) for v in means.values()}) < 2:
+    if len({round_half_up(v, precision) for v in means.values()}) < 2:
         return {}
     order = sorted(means, key=lambda i: means[i], reverse=direction is Direction.higher)
     marks = {order[0]: BEST} | {j: BEST for j in order[1:] if not better(order[0], j)}

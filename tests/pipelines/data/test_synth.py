@@ -48,7 +48,8 @@ def test_same_seed_gives_byte_identical_files(synth_small, synth_small_cfg, tmp_
     # In-process this time (the fixture used worker processes): the bytes must not care.
     again = build(dataclasses.replace(synth_small_cfg, num_workers=1), tmp_path / "again")
     first, second = _hashes(synth_small), _hashes(again)
-    assert len(first) == 2 * 10 * 6 * (len(WEATHERS) + 1) + 2 * 10 + 7 + 1  # images, depth, lidar, tables, json
+    # images, depth, lidar, tables, routes.json, dataset.json
+    assert len(first) == 2 * 10 * 6 * (len(WEATHERS) + 1) + 2 * 10 + 7 + 1 + 1
     del first["dataset.json"], second["dataset.json"]  # it records each file's mtime: compared below without them
     assert first == second
     meta, meta_again = (json.loads((r / "dataset.json").read_text()) for r in (synth_small, again))

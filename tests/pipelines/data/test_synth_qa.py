@@ -79,12 +79,10 @@ def test_records_follow_the_paper_schema(ds, qa, synth_small):
     for r in qa:
         human, gpt = _turns(r)
         assert gpt and GAUSS_TOKEN not in gpt
+        assert human.startswith(f"Based on {GAUSS_TOKEN}, ")
+        assert human.count(GAUSS_TOKEN) == 1
         if r["task"] == "traj":
-            assert human.startswith("There are last 4 frames of ego trajectory: [PT, ")
-            assert GAUSS_TOKEN not in human
-        else:
-            assert human.startswith(f"Based on {GAUSS_TOKEN}, ")
-            assert human.count(GAUSS_TOKEN) == 1
+            assert human.startswith(f"Based on {GAUSS_TOKEN}, there are last 4 frames of ego trajectory: [PT, ")
         assert r["gauss"] == [f"scenes/{r['scene_token']}/gaussians/{r['frame_idx']:05d}.arrow"]
         assert r["image"] == [f"scenes/{r['scene_token']}/images/{cam}/{r['frame_idx']:05d}.png" for cam in r["views"]]
         assert all((synth_small / p).is_file() for p in r["image"])

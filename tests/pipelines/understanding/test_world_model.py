@@ -86,7 +86,8 @@ def test_every_ablation_row_trains_two_steps_per_stage(row, synth_small, distill
         assert all(torch.isfinite(torch.tensor(losses)))
         changed = {n for n, p in model.named_parameters() if n in before and not torch.equal(before[n], p)}
         assert any(n.startswith("projection.") for n in changed)
-        assert any(n.startswith("decoders.") for n in changed) == comp.world.train_decoder
+        assert any(n.startswith("feature_head.") for n in changed) == comp.world.train_decoder
+        assert not any(n.startswith("decoders.") for n in changed)  # per-scene D_F stay as distilled
     else:
         assert before == {}  # image-only: nothing to train in stage 1
 
@@ -98,7 +99,10 @@ def test_every_ablation_row_trains_two_steps_per_stage(row, synth_small, distill
     with_grad = {n for n, p in model.named_parameters() if p.grad is not None and p.grad.abs().sum() > 0}
     assert with_grad and all("lora_" in n or not n.startswith("lm.") for n in with_grad)
     assert any("lora_" in n for n in with_grad)
-    assert not any(n.startswith("decoders.") for n in with_grad) or comp.world.train_decoder
+    assert not any(n.startswith("decoders.") for n in with_grad)
+    assert any(n.startswith("feature_head.") for n in with_grad) == (
+        comp.world.train_decoder and comp.world.gaussian_tokens
+    )
     model.zero_grad()
     assert all(torch.isfinite(torch.tensor(two_steps(model, samples[4:], store))))
 
@@ -181,3 +185,46 @@ def test_condition_gives_the_prompt_hidden_states_that_depend_on_the_scene(synth
         mask, enc["batch"]["attention_mask"].bool()
     )
     assert not torch.allclose(h[0, mask[0]][-1], h[1, mask[1]][-1])  # different frame: different Z_G and images
+
+
+def test_a_held_out_scene_decodes_through_the_parameters_training_trained(synth_small, distilled16, tiny_llm_dir):
+    comp = components({}, "driving_aware", "query_xattn", "kl")
+    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), distilled16, seed=0)
+    model.freeze_llm()
+    ds = GSQADataset(synth_small)
+    train, _ = load_samples(ds, "train", distilled16, need_gaussians=True)
+    val, _ = load_samples(ds, "val", distilled16, need_gaussians=True)
+    train_scenes = {s.scene for s in train}
+    held = val[0].scene
+    assert held not in train_scenes and held in distilled16  # a scene training never sees
+    store = FrameStore(ds, distilled16, "clear", 3)
+    codes = store.gaussians(held, val[0].frame)["code"]
+    chain = model.feature_decoder(held)
+    init = {n: p.detach().clone() for n, p in chain.named_parameters()}
+    with torch.no_grad():
+        before = chain(codes)
+
+    two_steps(model, train, store)  # batches of training scenes only
+
+    def trainable(scene: str) -> list[int]:
+        return [id(p) for p in model.feature_decoder(scene).parameters() if p.requires_grad]
+
+    assert trainable(held) and all(trainable(held) == trainable(s) for s in train_scenes)
+    moved = [n for n, p in model.feature_decoder(held).named_parameters() if not torch.equal(init[n], p)]
+    assert moved and all(n.startswith("1.") for n in moved)  # the shared head trained; the scene's D_F did not
+    with torch.no_grad():
+        after = model.feature_decoder(held)(codes)
+    assert (after - before).abs().max() > 1e-4  # the held-out scene's features moved with training
+
+
+def test_frozen_features_decode_exactly_as_distilled(synth_small, distilled16, tiny_llm_dir):
+    from pipelines.understanding.model import load_decoders
+
+    comp = components({"train_decoder": False}, "voxel_topk", "similarity", "none")
+    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), distilled16, seed=0)
+    scene = sorted(distilled16)[-1]
+    codes = torch.randn(5, 16)
+    assert not [p for p in model.feature_decoder(scene).parameters() if p.requires_grad]
+    distilled = load_decoders({scene: distilled16[scene]})[scene][1]
+    with torch.no_grad():
+        assert torch.equal(model.feature_decoder(scene)(codes), distilled(codes))
