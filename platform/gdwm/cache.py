@@ -335,8 +335,17 @@ class Cache:
         """Copy ``src_dir`` into the entry for ``key`` atomically; if another writer won, return its manifest.
 
         ``code`` is the stage's code fingerprint (its ``digest`` enters the key); ``replace`` puts this output in place
-        of an existing entry of the same key (a forced recompute: ``cache.reuse=none``, ``gdwm regress``)."""
+        of an existing entry of the same key (a forced recompute: ``cache.reuse=none``, ``gdwm regress``). An I/O
+        error (a full disk, a lost mount) is a ``CacheError`` naming the entry."""
         d = self._dir(stage, key)
+        try:
+            return self._publish(stage, key, src_dir, d, config, upstream, data_fingerprint, version, scene, run_id,
+                                 extra, code, base, replace)  # fmt: skip
+        except OSError as e:  # pyarrow's messages name no path
+            raise CacheError(f"stage {stage} key {key[:12]}: could not write {self._scheme + d}: {e}") from e
+
+    def _publish(self, stage, key, src_dir, d, config, upstream, data_fingerprint, version, scene, run_id, extra,
+                 code, base, replace) -> Manifest:  # fmt: skip
         expected = cache_key(stage, version, config, upstream, data_fingerprint, scene, code and code["digest"])
         if key != expected:
             raise CacheError(f"stage {stage} key {key[:12]}: != cache_key() of the given inputs ({expected[:12]})")

@@ -464,6 +464,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         err_console.print(f"gdwm {name}: interrupted", markup=False)
         return 130
+    except SystemExit as e:
+        if e.code == 128 + signal.SIGTERM:
+            err_console.print(f"gdwm {name}: terminated (SIGTERM); temp directories removed, runs ended", markup=False)
+        raise
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

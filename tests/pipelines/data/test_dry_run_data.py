@@ -66,4 +66,5 @@ def test_sigterm_during_generation_leaves_no_temp_directory(tmp_path):
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 143, err[-2000:]
+    assert "gdwm data synth: terminated (SIGTERM); temp directories removed, runs ended" in err
     assert list(data.iterdir()) == []
