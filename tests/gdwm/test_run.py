@@ -36,7 +36,9 @@ class Toy:
             make_dataset(self.data)
 
     def env(self, **inject: str) -> dict:
-        env = {k: v for k, v in os.environ.items() if not k.startswith("GDWM_TEST_")}
+        # RAY_AUTH_MODE too: an in-process ray.init earlier in the session sets it, and the CLI must run as from a
+        # user's shell (mode unset, token auth on by default)
+        env = {k: v for k, v in os.environ.items() if not k.startswith("GDWM_TEST_") and k != "RAY_AUTH_MODE"}
         env.update(
             PYTHONPATH=str(REPO), GDWM_CONF_PATH=str(REPO / "tests" / "conf"), GDWM_TEST_DIR=str(self.root), **inject
         )
