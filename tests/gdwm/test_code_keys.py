@@ -313,6 +313,7 @@ def test_cache_reuse_all_takes_old_code_and_the_plan_says_so(plug):
     assert "cache.reuse_stages: no stage 'lroa' in pipeline 'codeplug'" in bad.stderr
 
 
+@pytest.mark.slow  # make test-all: a baseline and a regression run; tests/gdwm/test_regress covers regress itself
 def test_regress_recomputes_changed_code_and_catches_a_planted_regression(plug):
     r = plug.gdwm("regress", "benchmark=codeplug", "--set-baseline")
     assert r.returncode == 0, r.stdout + r.stderr

@@ -52,6 +52,7 @@ def test_two_runs_from_scratch_give_the_same_bytes(twice):
     assert len(files_a) == 7 and files_a == files_b
 
 
+@pytest.mark.slow  # make test-all: a 3-trial sweep of the real pipeline; the two-workdir byte test stays
 def test_the_same_trial_in_a_concurrent_sweep_gives_the_same_bytes(twice, tmp_path):
     data, alone = twice[:2]
     r = _gdwm("sweep", "sweep=tiny_concurrent", f"workdir={tmp_path}", f"data.root={data}")
