@@ -22,7 +22,7 @@ from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
-from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config
+from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config, sqlite_path
 from gdwm.errors import one_line
 from gdwm.redact import redact, redact_config
 from gdwm.term import console, err_console, print_dataset_summary
@@ -83,9 +83,9 @@ def _status(cfg: DictConfig, _args: list[str]) -> int:
     from gdwm.tracking import TrackingBackend
 
     uri = cfg.tracking.uri
-    if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).is_file():
+    if (db := sqlite_path(uri)) is not None and not Path(db).is_file():
         # reading must not create a workdir and an empty store where nothing has run
-        err_console.print(f"no MLflow store at {uri.removeprefix('sqlite:///')}: nothing has run in workdir "
+        err_console.print(f"no MLflow store at {db}: nothing has run in workdir "
                           f"{cfg.workdir} (or tracking.uri points elsewhere)", markup=False)  # fmt: skip
         return 1
     backend = TrackingBackend(uri, cfg.tracking.experiment, cfg.tracking.artifact_location)

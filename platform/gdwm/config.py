@@ -292,6 +292,11 @@ def conf_dir() -> Path:
     )
 
 
+def sqlite_path(uri: str) -> str | None:
+    """The database file of a ``sqlite:///`` tracking URI; None for any other store."""
+    return uri.removeprefix("sqlite:///") if uri.startswith("sqlite:///") else None
+
+
 def group_options(group: str) -> list[str]:
     roots = [conf_dir(), *(Path(p) for p in os.environ.get("GDWM_CONF_PATH", "").split(os.pathsep) if p)]
     return sorted({p.stem for r in roots if (r / group).is_dir() for p in (r / group).glob("*.yaml")})

@@ -46,11 +46,9 @@ def one_line(e: BaseException) -> str:
 
 
 def _one_line(e: BaseException) -> str:
-    try:
-        import ray.exceptions as rex
-    except ImportError:  # pragma: no cover - ray is a dependency
-        rex = None
-    if rex is not None and isinstance(e, rex.RayError):
+    import ray.exceptions as rex  # here, not at import: the CLI's --help must not load Ray
+
+    if isinstance(e, rex.RayError):
         if isinstance(e, rex.RayTaskError):
             cause = e.cause if isinstance(e.cause, BaseException) else None
             what = one_line(cause) if cause is not None else _last_error_line(str(e))

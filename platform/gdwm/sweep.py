@@ -15,7 +15,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
-from gdwm.config import SweepConfig, load_config
+from gdwm.config import SweepConfig, load_config, sqlite_path
 from gdwm.plan import (
     PlanError,
     Trial,
@@ -88,7 +88,7 @@ def run_sweep(cfg: DictConfig, argv: list[str], dry_run: bool = False) -> Launch
 def _durations(cfg: DictConfig) -> dict[str, float]:
     """Median wall seconds of finished stage runs per stage in the store (the dry run's estimate); {} if none."""
     uri = cfg.tracking.uri
-    if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).is_file():
+    if (db := sqlite_path(uri)) is not None and not Path(db).is_file():
         return {}
     from gdwm.tracking import TrackingBackend
 

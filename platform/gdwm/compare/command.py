@@ -13,16 +13,13 @@ from gdwm.compare.runs import SelectionError, select, training_curves
 from gdwm.compare.samples import load_samples
 from gdwm.compare.stats import Settings
 from gdwm.compare.table import build_table
+from gdwm.config import sqlite_path
 from gdwm.term import console, err_console
 from gdwm.tracking import TrackingBackend
 
 METHODS = ("BCa", "percentile", "basic")
 """``scipy.stats.bootstrap`` methods."""
 SUFFIX = {Format.markdown: "md", Format.latex: "tex", Format.csv: "csv", Format.html: "html"}
-
-
-def _sqlite_path(uri: str) -> Path | None:
-    return Path(uri.removeprefix("sqlite:///")) if uri.startswith("sqlite:///") else None
 
 
 def settings(args: CompareArgs) -> Settings:
@@ -48,8 +45,8 @@ def compare(cfg: DictConfig) -> int:
         stats = settings(args)
     except ValueError as e:
         raise CommandError(str(e)) from e
-    db = _sqlite_path(cfg.tracking.uri)
-    if db is not None and not db.is_file():
+    db = sqlite_path(cfg.tracking.uri)
+    if db is not None and not Path(db).is_file():
         raise CommandError(f"no MLflow store at {db} (tracking.uri); run `gdwm run` first or set workdir=...")
     backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
     try:

@@ -22,6 +22,7 @@ from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID
 from ray.actor import ActorHandle
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
+from gdwm.config import sqlite_path
 from gdwm.errors import one_line
 from gdwm.redact import redact
 from gdwm.tracking.owner import OWNER_TAG, RECONCILED_TAG, owner_is_alive, process_owner
@@ -60,11 +61,6 @@ def _one_writer(cls: type) -> type:
         if callable(fn) and (name == "_connect" or not name.startswith("_")):
             setattr(cls, name, locked(fn))
     return cls
-
-
-def sqlite_path(uri: str) -> str | None:
-    """The database file of a ``sqlite:///`` tracking URI; None for any other store."""
-    return uri.removeprefix("sqlite:///") if uri.startswith("sqlite:///") else None
 
 
 @_one_writer

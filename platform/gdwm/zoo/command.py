@@ -11,6 +11,7 @@ from mlflow.entities.model_registry import ModelVersion
 from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
+from gdwm.config import sqlite_path
 from gdwm.redact import redact
 from gdwm.term import console
 from gdwm.zoo.refs import CHAMPION, ZooArgs, ZooError
@@ -32,7 +33,7 @@ SHOWN_METRICS = 4
 
 def _client(cfg: DictConfig) -> MlflowClient:
     uri = cfg.tracking.uri
-    if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).is_file():
+    if (db := sqlite_path(uri)) is not None and not Path(db).is_file():
         raise ZooError(f"no MLflow store at {uri} (tracking.uri); run `gdwm run` first or set workdir=...")
     return MlflowClient(uri, registry_uri=uri)
 
