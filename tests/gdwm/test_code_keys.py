@@ -292,6 +292,7 @@ def test_a_function_body_edit_reruns_lora_and_descendants_only(plug):
     assert len(cache.entries("lora")) == 2 and len(cache.entries("prep")) == 3  # the old code's entry is kept
 
 
+@pytest.mark.slow  # make test-all: two more runs; the function-body edit test stays in make test
 def test_a_library_version_reruns_the_stages_that_declare_it(plug):
     plug.library("2.0")
     dry = plug.gdwm("run", "--dry-run")
@@ -300,6 +301,7 @@ def test_a_library_version_reruns_the_stages_that_declare_it(plug):
     assert plug.executions() == {"lora": 1, "evaluate": 1}
 
 
+@pytest.mark.slow  # make test-all: two more runs
 def test_cache_reuse_all_takes_old_code_and_the_plan_says_so(plug):
     plug.edit("lora_math", "20.0", "30.0")
     dry = plug.gdwm("run", "--dry-run", "cache.reuse=all")

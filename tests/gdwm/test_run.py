@@ -150,6 +150,7 @@ def test_identical_rerun_is_all_cache_hits(first_run, tmp_path):
     assert "all 11 stage outputs cached and verified; nothing to run" in r.stdout
 
 
+@pytest.mark.slow  # make test-all: three trials
 def test_seeds_run_one_trial_each_and_share_seed_free_stages(first_run, tmp_path):
     """seeds=[0,1,2] after a seed-0 run: seed 0 is all cache hits, seeds 1 and 2 run only the seeded stages and what
     follows them; seed 2 fails, the run reports it (exit 1) and the row aggregates the two seeds that finished."""
@@ -194,6 +195,7 @@ def test_bad_seeds_exit_2(tmp_path, args, message):
     assert not (toy.work / "mlflow.db").exists()
 
 
+@pytest.mark.slow  # make test-all: a rerun from lora; test_code_keys checks the same for a code edit
 def test_lora_change_reruns_lora_and_descendants_only(first_run, tmp_path):
     toy = _copy(first_run, tmp_path)
     _ok(toy.run("stage.toy_lora.rank=8"))
@@ -201,12 +203,14 @@ def test_lora_change_reruns_lora_and_descendants_only(first_run, tmp_path):
     assert Counter(r.data.tags["gdwm.stage"] for r in toy.runs())["lora"] == 2
 
 
+@pytest.mark.slow  # make test-all: a second run
 def test_targets_run_only_ancestors(first_run, tmp_path):
     toy = _copy(first_run, tmp_path)
     _ok(toy.run("stage.toy_lora.rank=16", "targets=[evaluate_qa]"))
     assert sorted(s for s, _ in toy.executions()) == ["evaluate_qa", "lora"]
 
 
+@pytest.mark.slow  # make test-all: a recompute run
 def test_flipped_byte_is_detected_and_recomputed(first_run, tmp_path):
     toy = _copy(first_run, tmp_path)
     cache = Cache(toy.work / "cache")
@@ -283,6 +287,7 @@ def test_killed_train_worker_resumes_from_last_checkpoint(tmp_path):
     assert tok.info.status == "FINISHED"
 
 
+@pytest.mark.slow  # make test-all: two more runs on top of first_run
 def test_failing_stage_exits_1_naming_it_and_keeps_the_cache(first_run, tmp_path):
     toy = _copy(first_run, tmp_path)
     r = toy.run("stage.toy_diffusion.steps=5", GDWM_TEST_FAIL="evaluate_gen:None")

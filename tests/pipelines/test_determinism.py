@@ -42,6 +42,7 @@ def twice(tiny_run, tmp_path_factory) -> tuple[Path, dict, dict, dict, dict]:
     return tiny_run.data, runs[0][0], runs[1][0], runs[0][1], runs[1][1]
 
 
+@pytest.mark.slow  # make test-all: two real runs from scratch; make test checks the seeding (tests/gdwm)
 def test_two_runs_from_scratch_give_the_same_bytes(twice):
     _, a, b, files_a, files_b = twice
     assert list(a) == list(b)  # one trial, the same cache key in both workdirs
