@@ -174,8 +174,13 @@ class LLMConfig:
     seed: int = 0
     """Seed of the tiny flavor's random initialisation (gdwm's YAML sets it to the trial seed)."""
     pretrain_steps: int = 0
-    """Tiny flavor: full-parameter next-token steps on the corpus text (each string a document, no chat template)
-    after the random init, standing in for a pretrained checkpoint: it knows the domain's words, not the tasks."""
+    """Tiny flavor: full-parameter steps after the random init, standing in for a pretrained checkpoint (what it
+    learns from is ``pretrain_on``)."""
+    pretrain_on: str = "text"
+    """``text``: next-token steps on the corpus, each string a document (the domain's words, not the tasks).
+    ``instructions``: the training split's (instruction, answer) pairs in the chat template, text only (no images,
+    no world tokens), loss on the answer: what an instruction-tuned VLM brings (answer formats, the prior of each
+    question kind), never the scene, which the tokenizer and lora stages must learn to read."""
     pretrain_lr: float = 3e-3
     """Adam learning rate of that warm-up."""
     pretrain_batch_size: int = 32

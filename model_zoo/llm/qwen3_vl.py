@@ -32,6 +32,8 @@ from model_zoo.config import LLMConfig  # torch-free, so config composition neve
 from model_zoo.encoders.qwen3_vl_vision import QwenVisionConfig, _processor, tiny_vision_config
 from model_zoo.llm.text import (
     GAUSS_PAD,
+    GAUSS_PLACEHOLDER,
+    IGNORE_INDEX,
     IM_END,
     IMAGE_PAD,
     PAD,
@@ -412,9 +414,17 @@ def _tiny_model(cfg: LLMConfig, tokenizer: Any) -> Any:
     return model.to(_dtype(cfg.dtype)).eval()
 
 
+PRETRAIN_ON = ("text", "instructions")
+
+
 @register("llm", "qwen3_vl")
-def build_qwen3_vl(cfg: LLMConfig | None = None, corpus: Iterable[str] | None = None) -> WorldLLM:
-    """The checkpoint at ``cfg.path``, or with ``tiny=True`` a random model + a tokenizer trained on ``corpus``."""
+def build_qwen3_vl(
+    cfg: LLMConfig | None = None,
+    corpus: Iterable[str] | None = None,
+    instructions: Sequence[tuple[str, str]] | None = None,
+) -> WorldLLM:
+    """The checkpoint at ``cfg.path``, or with ``tiny=True`` a random model + a tokenizer trained on ``corpus``, warmed
+    up as ``cfg.pretrain_on`` says (``instructions``: the (instruction, answer) pairs it reads)."""
     cfg = LLMConfig() if cfg is None else cfg
     if cfg.tiny:
         if corpus is None:
@@ -422,13 +432,24 @@ def build_qwen3_vl(cfg: LLMConfig | None = None, corpus: Iterable[str] | None = 
                 "llm/qwen3_vl tiny: a text corpus is required to train the tiny BPE tokenizer "
                 "(build('llm', 'qwen3_vl', cfg, corpus=[...]))"
             )
+        if cfg.pretrain_on not in PRETRAIN_ON:
+            raise ValueError(f"model.llm.pretrain_on: unknown '{cfg.pretrain_on}' (one of {list(PRETRAIN_ON)})")
+        if cfg.pretrain_steps > 0 and cfg.pretrain_on == "instructions" and not instructions:
+            raise ValueError(
+                "llm/qwen3_vl tiny: model.llm.pretrain_on=instructions needs the (instruction, answer) pairs "
+                "(build('llm', 'qwen3_vl', cfg, corpus=[...], instructions=[...]))"
+            )
         corpus = list(corpus)
         tokenizer = train_tiny_tokenizer(corpus, cfg.vocab_size)
         model = _tiny_model(cfg, tokenizer)
         proc_cfg = QwenVisionConfig(tiny=True, max_pixels=cfg.image_max_pixels)
         llm = WorldLLM(model, tokenizer, _processor(None, model.config.vision_config, proc_cfg), cfg)
         if cfg.pretrain_steps > 0:
-            pretrain_on_text(llm, corpus, cfg.pretrain_steps, cfg.pretrain_lr, cfg.pretrain_batch_size, cfg.seed)
+            args = (cfg.pretrain_steps, cfg.pretrain_lr, cfg.pretrain_batch_size, cfg.seed)
+            if cfg.pretrain_on == "instructions":
+                pretrain_on_instructions(llm, list(instructions or []), *args)
+            else:
+                pretrain_on_text(llm, corpus, *args)
         return llm
     if cfg.path is None:
         raise FileNotFoundError(
@@ -447,6 +468,35 @@ def pretrain_on_text(
     docs = [[*ids, llm.pad_token_id] for ids in tok(corpus, add_special_tokens=False)["input_ids"] if ids]
     if not docs:
         raise ValueError("llm/qwen3_vl tiny: the pre-training corpus has no text")
+    return _pretrain(llm, [(d, d) for d in docs], steps, lr, batch_size, seed)
+
+
+def pretrain_on_instructions(
+    llm: WorldLLM, pairs: list[tuple[str, str]], steps: int, lr: float, batch_size: int, seed: int
+) -> list[float]:
+    """Instruction tuning of every parameter on (instruction, answer) pairs in the chat template ``encode`` builds,
+    text only (the ``<gauss>`` placeholder reads "the scene"), loss on the answer; returns the losses. Deterministic
+    for given pairs and seed."""
+    docs = []
+    for i, (instruction, answer) in enumerate(pairs):
+        enc = llm.encode(
+            sample_id=f"pretrain/{i}",
+            instruction=instruction.replace(GAUSS_PLACEHOLDER, "the scene"),
+            answer=answer,
+            image_tokens=[],
+            k_f=0,
+            gaussian=False,
+        )
+        docs.append((enc.input_ids, enc.labels))
+    if not docs:
+        raise ValueError("llm/qwen3_vl tiny: no (instruction, answer) pairs to pre-train on")
+    return _pretrain(llm, docs, steps, lr, batch_size, seed)
+
+
+def _pretrain(
+    llm: WorldLLM, docs: list[tuple[list[int], list[int]]], steps: int, lr: float, batch_size: int, seed: int
+) -> list[float]:
+    """Full-parameter AdamW steps on random batches of (input ids, labels) documents, right-padded."""
     model = llm.model
     gen = torch.Generator().manual_seed(seed)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=0.0)
@@ -454,14 +504,14 @@ def pretrain_on_text(
     model.train()
     for _ in range(steps):
         pick = torch.randint(len(docs), (min(batch_size, len(docs)),), generator=gen).tolist()
-        length = max(len(docs[i]) for i in pick)
+        length = max(len(docs[i][0]) for i in pick)
         ids = torch.full((len(pick), length), llm.pad_token_id, dtype=torch.long)
-        labels = torch.full_like(ids, -100)
+        labels = torch.full_like(ids, IGNORE_INDEX)
         mask = torch.zeros_like(ids)
         for b, i in enumerate(pick):
-            n = len(docs[i])
-            ids[b, :n] = torch.tensor(docs[i])
-            labels[b, :n] = ids[b, :n]
+            n = len(docs[i][0])
+            ids[b, :n] = torch.tensor(docs[i][0])
+            labels[b, :n] = torch.tensor(docs[i][1])
             mask[b, :n] = 1
         loss = model(input_ids=ids, attention_mask=mask, labels=labels).loss
         opt.zero_grad(set_to_none=True)

@@ -72,7 +72,8 @@ class EvaluateQAConfig:
     max_new_tokens: int = 64
     """Answer length bound (tokens)."""
     max_samples: int = 0
-    """Score only the first N samples of the split (0 = all): smoke runs."""
+    """Score at most N samples of the split (0 = all): an even share per task family, spread over the scenes and
+    frames (``pipelines.understanding.data.balanced_subset``)."""
     tasks: list[str] = field(default_factory=list)
     """Task families answered (``rdp``, ``vg2d``, ``vg3d``, ``plan``, ``traj``); empty = all."""
     suites: SuiteMapping = field(default_factory=SuiteMapping)

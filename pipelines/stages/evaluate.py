@@ -28,7 +28,7 @@ from gdwm.stage import StageContext, stage
 from pipelines.data.reader import GSQADataset
 from pipelines.evaluate.config import FUTURE_POSES, EvaluateGenConfig, EvaluateQAConfig
 from pipelines.evaluate.suites import score_predictions, score_table, with_mapping
-from pipelines.understanding.data import FrameStore, QASample, load_samples
+from pipelines.understanding.data import FrameStore, QASample, balanced_subset, row_samples
 from pipelines.understanding.infer import PREDICTION_SCHEMA, predict, write_predictions
 from pipelines.understanding.model import load_world_model
 
@@ -79,14 +79,12 @@ def answer_all(ctx: StageContext, model_dir: Path, samples: list[QASample], cfg:
 def evaluate_qa(ctx: StageContext) -> dict:
     cfg = EvaluateQAConfig(**ctx.cfg("stage.evaluate_qa"))
     model_dir = ctx.upstream["lora"].path
-    meta = json.loads((model_dir / "world.json").read_text())
-    needs_gaussians = bool(meta["components"]["world"]["gaussian_tokens"])
     ds = GSQADataset(ctx.data_root)
-    samples, skipped = load_samples(ds, cfg.split, dict(ctx.upstream["distill"].scenes), need_gaussians=needs_gaussians)
+    # every row of a table answers the same samples, whether or not it reads Gaussian tokens
+    samples, skipped = row_samples(ds, cfg.split, dict(ctx.upstream["distill"].scenes))
     if cfg.tasks:
         samples = [s for s in samples if s.task in cfg.tasks]
-    if cfg.max_samples > 0:
-        samples = samples[: cfg.max_samples]
+    samples = balanced_subset(samples, cfg.max_samples)
     if not samples:
         raise ValueError(
             f"evaluate_qa: split '{cfg.split}' has no samples to answer (tasks {cfg.tasks or 'all'}; "

@@ -13,7 +13,7 @@ from gdwm.stage import StageContext, stage
 from model_zoo import registry
 from model_zoo.llm.qwen3_vl import WorldLLM
 from pipelines.understanding.config import TokenizerStageConfig
-from pipelines.understanding.data import training_corpus
+from pipelines.understanding.data import instruction_pairs, training_corpus
 from pipelines.understanding.model import WORLD_FILE, build_world_model, load_world_model
 from pipelines.understanding.stage_common import MODEL_CONFIG, components, finish, run_training, training_samples
 
@@ -31,7 +31,8 @@ def tokenizer(ctx: StageContext) -> dict:
     init = ctx.checkpoint_dir / "init"
     if not (init / WORLD_FILE).is_file():  # a resumed attempt reuses the same initial model
         if comp.llm.tiny:
-            llm = registry.build("llm", comp.llm.name, comp.llm, corpus=training_corpus(train))
+            llm = registry.build("llm", comp.llm.name, comp.llm, corpus=training_corpus(train),
+                                 instructions=instruction_pairs(train))  # fmt: skip
         else:
             llm = WorldLLM.from_pretrained(comp.llm.path, comp.llm)
         build_world_model(comp, llm, scene_dirs, seed=ctx.seed).save(init, save_llm=True)

@@ -84,6 +84,26 @@ def row_samples(ds: GSQADataset, split: str, scene_dirs: Mapping[str, Path]) -> 
     return load_samples(ds, split, scene_dirs, need_gaussians=True)
 
 
+def balanced_subset(samples: Sequence[QASample], n: int) -> list[QASample]:
+    """At most ``n`` of ``samples``, as even a share of every task family as the families allow (a family with
+    fewer samples gives its unused share to the others), each family's share spread evenly over its samples (so
+    over scenes and frames), returned in the original order. Deterministic; ``n <= 0`` keeps everything.
+
+    The first ``n`` samples would be the first frames of the first val scene: a few families, one scenario."""
+    if n <= 0 or n >= len(samples):
+        return list(samples)
+    groups: dict[str, list[int]] = {}
+    for i, s in enumerate(samples):
+        groups.setdefault(s.task, []).append(i)
+    quota = dict.fromkeys(groups, 0)
+    while sum(quota.values()) < n:
+        for t in groups:
+            if quota[t] < len(groups[t]) and sum(quota.values()) < n:
+                quota[t] += 1
+    keep = sorted(g[(k * len(g)) // quota[t]] for t, g in groups.items() for k in range(quota[t]))
+    return [samples[i] for i in keep]
+
+
 def task_counts(samples: Sequence[QASample]) -> dict[str, int]:
     """Samples per task family, every family of the paper's QA listed (0 when it has none)."""
     counts = Counter(s.task for s in samples)
@@ -200,6 +220,12 @@ class FrameStore:
 def training_corpus(samples: Sequence[QASample]) -> list[str]:
     """Text the tiny flavor's BPE tokenizer is trained on: the training split's instructions and answers."""
     return [t for s in samples for t in (s.instruction, s.answer)]
+
+
+def instruction_pairs(samples: Sequence[QASample]) -> list[tuple[str, str]]:
+    """(instruction, answer) of the training split: the tiny flavor's warm-up with ``model.llm.pretrain_on=instructions``
+    (text only: never an image, a Gaussian or a val sample)."""
+    return [(s.instruction, s.answer) for s in samples]
 
 
 def read_json(path: Path) -> dict:

@@ -359,3 +359,51 @@ def test_tiny_pretraining_learns_the_corpus_and_is_deterministic():
     assert sum(la[-5:]) / 5 < 0.6 * sum(la[:5]) / 5
     with pytest.raises(ValueError, match="pre-training corpus has no text"):
         pretrain_on_text(a, ["", ""], steps=1, lr=1e-3, batch_size=2, seed=0)
+
+
+def test_instruction_warm_up_teaches_each_question_its_answer_format():
+    """model.llm.pretrain_on=instructions: text-only (instruction, answer) pairs with the loss on the answer, as an
+    instruction-tuned checkpoint knows them. Three question kinds with three answer formats: after the warm-up the
+    greedy answer to each kind has its format (the text warm-up, documents without the template, does not)."""
+    from pipelines.evaluate.grounding import parse_box, parse_centre_size
+    from pipelines.evaluate.planning import parse_decision
+
+    kinds = [
+        ("Based on <gauss>, please locate the {c} car in <CAM_FRONT>.", "<CAM_FRONT> <box>({x},40),({y},60)</box>"),
+        ("Based on <gauss>, where is the {c} car in 3D?", "center: ({x}.00, 2.00, 0.50), size: (4.00, 1.80, 1.50)"),
+        ("Based on <gauss>, how should the ego vehicle adjust its speed near the {c} car?", "Keep speed. Reason: {c}."),
+    ]
+    colours = ["red", "blue", "white", "black", "green", "orange"]
+    pairs = [(q.format(c=c), a.format(c=c, x=10 + i, y=30 + i)) for i, c in enumerate(colours) for q, a in kinds]
+    corpus = [t for p in pairs for t in p]
+    parses = [parse_box, parse_centre_size, lambda t: parse_decision(t, ["keep speed", "stop"])]
+
+    def formats(pretrain_on: str) -> list[bool]:
+        cfg = LLMConfig(seed=0, pretrain_steps=150, pretrain_batch_size=16, pretrain_on=pretrain_on)
+        llm = registry.build("llm", "qwen3_vl", cfg, corpus=corpus, instructions=pairs)
+        prompts = [q.format(c="green") for q, _ in kinds]  # the formats are checked, not the numbers
+        enc = [
+            llm.encode(
+                sample_id=f"q{i}",
+                instruction=p.replace("<gauss>", "the scene"),
+                answer=None,
+                image_tokens=[],
+                k_f=0,
+                gaussian=False,
+            )
+            for i, p in enumerate(prompts)
+        ]
+        answers = llm.generate(collate(enc, llm.pad_token_id, "left"), max_new_tokens=40)
+        return [parse(a) is not None for parse, a in zip(parses, answers, strict=True)]
+
+    assert formats("instructions") == [True, True, True]
+    assert formats("text") != [True, True, True]
+
+
+def test_instruction_warm_up_needs_its_pairs_and_a_known_mode():
+    with pytest.raises(
+        ValueError, match=r"model.llm.pretrain_on: unknown 'chat' \(one of \['text', 'instructions'\]\)"
+    ):
+        _build(pretrain_steps=1, pretrain_on="chat")
+    with pytest.raises(ValueError, match="pretrain_on=instructions needs the \\(instruction, answer\\) pairs"):
+        _build(pretrain_steps=1, pretrain_on="instructions")

@@ -44,7 +44,7 @@ from pipelines.data.synth.weather import render_weather
 
 log = logging.getLogger(__name__)
 SOURCE = "synthetic_mini"
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
 """Bump when the generator's output changes for the same config."""
 _BASE_TIME_US = 1_600_000_000_000_000
 
@@ -217,7 +217,7 @@ def _write_scene(w: _SceneSink, cfg: SynthConfig, scene: Scene, split: str, hori
         looks={a.instance_id: (a.kind, a.colour) for a in scene.actors},
         direction_truth=lambda f, h: lateral_truth(scene, f, h),
     )
-    rows = scene_qa(truth, cfg.seed, scene.index, cfg.qa_per_task, horizon)
+    rows = scene_qa(truth, cfg.seed, scene.index, cfg.qa_per_task, horizon, cfg.min_referent_pixels)
     w.extend("qa", rows)
     return len(rows)
 

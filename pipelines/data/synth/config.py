@@ -64,6 +64,9 @@ class SynthConfig(DatasetConfig):
     """Fog: distance at which the scene keeps exp(-1) of its contrast."""
     qa_per_task: int = 4
     """At most this many QA of each of rdp, vg2d and vg3d per frame."""
+    min_referent_pixels: int = 8
+    """Grounding QA (vg2d, vg3d) ask only about objects whose 2D box is at least this wide and high in the stored
+    image (one patch of the tiny vision tower at the default 160x90)."""
     plan_horizon_s: float = 2.0
     """Planning QA look this far ahead; frames without that much future get none."""
     num_workers: int = 0
@@ -108,7 +111,7 @@ def validate(cfg: SynthConfig) -> None:
     _check(cfg.frame_rate_hz > 0, "frame_rate_hz", "> 0", cfg.frame_rate_hz)
     _check(0 <= cfg.val_fraction < 1, "val_fraction", "in [0, 1)", cfg.val_fraction)
     _check(0 <= cfg.parked_fraction <= 1, "parked_fraction", "in [0, 1]", cfg.parked_fraction)
-    for key in ("num_vehicles", "num_pedestrians", "qa_per_task", "num_workers"):
+    for key in ("num_vehicles", "num_pedestrians", "qa_per_task", "num_workers", "min_referent_pixels"):
         _check(getattr(cfg, key) >= 0, key, ">= 0", getattr(cfg, key))
     for key in ("min_box_pixels", "lidar_beams", "lidar_azimuth_steps"):
         _check(getattr(cfg, key) >= 1, key, ">= 1", getattr(cfg, key))

@@ -25,7 +25,9 @@ parses them):
 Grounding questions name "the {colour} {noun} {on the left | in the middle | on the right}" (box
 centre by image thirds) and ask only about referents that phrase makes unambiguous: the colour
 and noun alone, or failing that together with the position, are unique among the camera's 2D
-boxes; and at least 30 % of the object is visible.
+boxes; at least 30 % of the object is visible; and its 2D box is at least ``min_referent_pixels`` wide and high
+(``data.min_referent_pixels``, 8: one patch of the tiny vision tower; a smaller object cannot be told apart in the
+image tokens, so asking to locate it tests luck, not grounding).
 """
 
 from __future__ import annotations
@@ -134,8 +136,9 @@ def _pick(rng: np.random.Generator, items: list, n: int) -> list:
     return [items[i] for i in sorted(rng.choice(len(items), size=n, replace=False))]
 
 
-def _referents(truth: SceneTruth, ft: FrameTruth) -> list[tuple[dict, str]]:
-    """(boxes2d row, unambiguous referring phrase) per well-visible object."""
+def _referents(truth: SceneTruth, ft: FrameTruth, min_px: int) -> list[tuple[dict, str]]:
+    """(boxes2d row, unambiguous referring phrase) per well-visible object whose box is >= ``min_px`` both ways
+    (the phrase is unambiguous among all the camera's boxes, small ones included)."""
     out = []
     for cam in CAMERAS:
         rows = [r for r in ft.boxes2d if r["camera"] == cam]
@@ -144,7 +147,8 @@ def _referents(truth: SceneTruth, ft: FrameTruth) -> list[tuple[dict, str]]:
         by_phrase = Counter(phrases)
         by_both = Counter(zip(phrases, rels, strict=True))
         for r, p, rel in zip(rows, phrases, rels, strict=True):
-            if r["visible_fraction"] < MIN_REFERENT_VISIBILITY:
+            x1, y1, x2, y2 = r["box"]
+            if r["visible_fraction"] < MIN_REFERENT_VISIBILITY or min(x2 - x1, y2 - y1) < min_px:
                 continue
             if by_phrase[p] == 1 or by_both[(p, rel)] == 1:
                 out.append((r, f"{p} {rel}"))
@@ -187,10 +191,10 @@ def _perception(rec: _Records, ft: FrameTruth, rng: np.random.Generator, per_tas
             )
 
 
-def _grounding(rec: _Records, ft: FrameTruth, rng: np.random.Generator, per_task: int) -> None:
+def _grounding(rec: _Records, ft: FrameTruth, rng: np.random.Generator, per_task: int, min_px: int) -> None:
     f = ft.frame_idx
     boxes3d = {r["instance_id"]: r for r in ft.boxes3d}
-    refs = _referents(rec.truth, ft)
+    refs = _referents(rec.truth, ft, min_px)
     for r, phrase in _pick(rng, refs, per_task):
         cam = r["camera"]
         rec.add(
@@ -310,13 +314,15 @@ def _trajectory(rec: _Records, start: int) -> None:
     )
 
 
-def scene_qa(truth: SceneTruth, seed: int, scene_index: int, per_task: int, horizon: int) -> list[dict]:
+def scene_qa(
+    truth: SceneTruth, seed: int, scene_index: int, per_task: int, horizon: int, min_referent_pixels: int = 8
+) -> list[dict]:
     """All QA records of one scene (deterministic in seed and scene index)."""
     rec = _Records(truth)
     for ft in truth.frames:
         rng = np.random.default_rng([seed, scene_index, ft.frame_idx, 99])
         _perception(rec, ft, rng, per_task)
-        _grounding(rec, ft, rng, per_task)
+        _grounding(rec, ft, rng, per_task, min_referent_pixels)
         _plan(rec, ft, horizon)
     for start in range(len(truth.frames) - planning.WINDOW + 1):
         _trajectory(rec, start)

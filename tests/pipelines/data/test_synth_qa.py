@@ -157,6 +157,25 @@ def test_vg2d_answers_are_the_instances_2d_boxes(ds, qa):
         assert want in human
 
 
+def test_grounding_asks_only_about_objects_one_patch_or_larger(ds, qa, synth_small_cfg):
+    """A referent under ``min_referent_pixels`` (8: one patch of the tiny vision tower) cannot be told apart in the
+    image tokens; before, half the demo's vg2d boxes were narrower than 11 px and no row ever matched one."""
+    assert synth_small_cfg.min_referent_pixels == 8
+    sizes = []
+    for r in qa:
+        if r["task"] in ("vg2d", "vg3d"):
+            gt = json.loads(r["gt"])
+            (row,) = [
+                b
+                for b in ds.scene(r["scene_token"]).frame(r["frame_idx"]).boxes2d(gt["camera"])
+                if b["instance_id"] == gt["instance_id"]
+            ]
+            x1, y1, x2, y2 = row["box"]
+            sizes.append(min(x2 - x1, y2 - y1))
+    assert len(sizes) >= 40
+    assert min(sizes) >= 8
+
+
 def test_vg3d_answers_are_the_instances_3d_boxes(ds, qa):
     rows = [r for r in qa if r["task"] == "vg3d"]
     assert len(rows) >= 20

@@ -12,6 +12,7 @@ from pipelines.data.reader import GSQADataset
 from pipelines.understanding.data import (
     QASample,
     TaskSampler,
+    balanced_subset,
     ego_trajectory_xy,
     load_samples,
     task_probabilities,
@@ -38,6 +39,21 @@ def test_task_sampler_is_deterministic_per_step_and_balances_tasks():
     assert 0.45 < drawn["small"] / 2000 < 0.55  # alpha_s = 0: uniform over tasks despite 9:1 sizes
     with pytest.raises(DataError, match="no training samples"):
         TaskSampler([], 0.5, 0)
+
+
+def test_balanced_subset_shares_the_budget_across_families_and_frames():
+    """evaluate_qa's max_samples: the first N of the split were the first frames of one scene (no plan, no traj)."""
+    order = [("rdp", 30), ("vg2d", 30), ("vg3d", 30), ("plan", 6), ("traj", 2)]
+    samples = [QASample(f"{t}/{i}", "s", i, t, "q", "a", ()) for t, n in order for i in range(n)]
+    sub = balanced_subset(samples, 20)
+    # round robin in the split's family order; traj gives what it lacks to the others
+    assert Counter(s.task for s in sub) == {"rdp": 5, "vg2d": 5, "vg3d": 4, "plan": 4, "traj": 2}
+    assert [s.frame for s in sub if s.task == "rdp"] == [0, 6, 12, 18, 24]  # spread over the family's samples
+    assert sub == sorted(sub, key=samples.index)  # the split's order (ranking-based mAP reads it)
+    assert Counter(s.task for s in balanced_subset(samples, 50)) == {"rdp": 14, "vg2d": 14, "vg3d": 14, "plan": 6,
+                                                                      "traj": 2}  # fmt: skip
+    assert balanced_subset(samples, 0) == samples and balanced_subset(samples, 500) == samples
+    assert balanced_subset(samples, 3) == balanced_subset(samples, 3)
 
 
 def test_ego_trajectory_prior_uses_the_past_and_extrapolates():
