@@ -223,8 +223,8 @@ def training_corpus(samples: Sequence[QASample]) -> list[str]:
 
 
 def instruction_pairs(samples: Sequence[QASample]) -> list[tuple[str, str]]:
-    """(instruction, answer) of the training split: the tiny flavor's warm-up with ``model.llm.pretrain_on=instructions``
-    (text only: never an image, a Gaussian or a val sample)."""
+    """(instruction, answer) of the training split: the tiny flavor's warm-up with
+    ``model.llm.pretrain_on=instructions`` (text only: never an image, a Gaussian or a val sample)."""
     return [(s.instruction, s.answer) for s in samples]
 
 
