@@ -255,6 +255,7 @@ def test_pipeline_stages_fingerprint_their_own_code_and_libraries():
 
 
 # ---- end to end through the CLI -----------------------------------------------------------------------------------
+@pytest.mark.slow  # make test-all: the plug fixture's runs (~50 s); the fingerprint unit tests stay
 def test_the_manifest_and_the_stage_run_record_the_fingerprint(plug):
     cache = Cache(plug.work / "cache")
     [m] = cache.entries("lora")
@@ -268,6 +269,7 @@ def test_the_manifest_and_the_stage_run_record_the_fingerprint(plug):
     assert code == m.code
 
 
+@pytest.mark.slow  # make test-all: the plug fixture's runs
 def test_a_comment_docstring_or_reformat_reruns_nothing(plug):
     plug.edit("lora_math", "# the rank scales the weight", "# the rank, times ten")
     plug.edit("lora_math", '"""The LoRA\'s arithmetic: imported by the lora stage only."""', '"""Arithmetic."""')
@@ -277,6 +279,7 @@ def test_a_comment_docstring_or_reformat_reruns_nothing(plug):
     assert "all 6 stage outputs cached and verified" in r.stdout
 
 
+@pytest.mark.slow  # make test-all: the plug fixture's runs and a rerun
 def test_a_function_body_edit_reruns_lora_and_descendants_only(plug):
     plug.edit("lora_math", "10.0", "20.0")
     dry = plug.gdwm("run", "--dry-run")
@@ -292,7 +295,7 @@ def test_a_function_body_edit_reruns_lora_and_descendants_only(plug):
     assert len(cache.entries("lora")) == 2 and len(cache.entries("prep")) == 3  # the old code's entry is kept
 
 
-@pytest.mark.slow  # make test-all: two more runs; the function-body edit test stays in make test
+@pytest.mark.slow  # make test-all: two more runs
 def test_a_library_version_reruns_the_stages_that_declare_it(plug):
     plug.library("2.0")
     dry = plug.gdwm("run", "--dry-run")

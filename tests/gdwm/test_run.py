@@ -304,7 +304,8 @@ def test_failing_stage_exits_1_naming_it_and_keeps_the_cache(first_run, tmp_path
     assert toy.executions() == [("evaluate_gen", "-")]
 
 
-@pytest.mark.parametrize("policy", ["fail", pytest.param("skip", marks=pytest.mark.slow)])
+@pytest.mark.slow  # make test-all: a second run per policy on top of first_run (~45 s each)
+@pytest.mark.parametrize("policy", ["fail", "skip"])
 def test_scene_error_policy(first_run, tmp_path, policy):
     toy = _copy(first_run, tmp_path)
     r = toy.run(
@@ -350,6 +351,7 @@ def _start_blocked(toy: Toy, block: str) -> subprocess.Popen:
     return proc
 
 
+@pytest.mark.slow  # make test-all: a killed and a resumed driver (~105 s)
 def test_sigkilled_driver_resumes_without_duplicates(tmp_path):
     toy = Toy(tmp_path)
     proc = _start_blocked(toy, "lora:step=1")

@@ -33,6 +33,7 @@ def swept(tmp_path_factory) -> Toy:
     return toy
 
 
+@pytest.mark.slow  # make test-all: the toy sweep fixture (~100 s); the CLI checks above stay
 def test_shared_stages_run_exactly_once(swept):
     # 3 trials x (3 scenes x 2 per-scene stages + tokenizer + lora + evaluate_qa) = 27 as independent runs
     assert Counter(s for s, _ in swept.executions()) == {
@@ -48,6 +49,7 @@ def test_shared_stages_run_exactly_once(swept):
     assert "(shared by 3 trials)" in swept.stdout  # tokenizer
 
 
+@pytest.mark.slow  # make test-all: the toy sweep fixture
 def test_one_parent_a_run_per_row_and_a_child_per_trial(swept):
     (parent,) = swept.runs("sweep")
     assert parent.info.status == "FINISHED" and parent.data.tags["gdwm.sweep"] == "toy_ablation"
@@ -75,6 +77,7 @@ def test_one_parent_a_run_per_row_and_a_child_per_trial(swept):
     assert len({t.data.tags["gdwm.stage_run.lora"] for t in trials.values()}) == 3
 
 
+@pytest.mark.slow  # make test-all: the toy sweep fixture
 def test_report_written_and_logged_to_the_sweep_run(swept):
     md = (swept.work / "reports" / "toy_ablation" / "nuinteract.md").read_text()
     assert "**96.00 [" in md and "<u>48.00 [" in md  # plan accuracy: best and second, each with its interval
@@ -153,6 +156,7 @@ def test_sigkilled_driver_resumes_the_sweep_without_duplicates(tmp_path):
     assert Counter(s for s, _ in toy.executions())["tokenizer"] == 1  # finished before the kill: not redone
 
 
+@pytest.mark.slow  # make test-all: a 2-row x 2-seed toy sweep (~2 min)
 def test_seeds_share_seed_free_stages_and_aggregate_per_row(tmp_path):
     """2 rows x 3 seeds: reconstruct and distill (seed-free) run once, tokenizer once per seed (shared by the rows),
     lora and evaluate_qa once per (row, seed); each row's run holds mean, std and n over its seeds."""

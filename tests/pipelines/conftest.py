@@ -23,6 +23,7 @@ TINY_RUN = [
     "data.num_scenes=2",
     "data.width=64",
     "data.height=36",
+    "model.llm.pretrain_steps=20",  # the tiny LLM's warm-up: 200 steps take about a minute
 ]
 """``gdwm run`` overrides of the understanding branch in seconds: tiny flavors on 2 small scenes."""
 
