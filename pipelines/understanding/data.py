@@ -95,11 +95,12 @@ def balanced_subset(samples: Sequence[QASample], n: int) -> list[QASample]:
     groups: dict[str, list[int]] = {}
     for i, s in enumerate(samples):
         groups.setdefault(s.task, []).append(i)
-    quota = dict.fromkeys(groups, 0)
-    while sum(quota.values()) < n:
+    quota, taken = dict.fromkeys(groups, 0), 0
+    while taken < n:  # round robin; n < len(samples), so some family always has one left
         for t in groups:
-            if quota[t] < len(groups[t]) and sum(quota.values()) < n:
+            if quota[t] < len(groups[t]) and taken < n:
                 quota[t] += 1
+                taken += 1
     keep = sorted(g[(k * len(g)) // quota[t]] for t, g in groups.items() for k in range(quota[t]))
     return [samples[i] for i in keep]
 

@@ -315,7 +315,7 @@ def _trajectory(rec: _Records, start: int) -> None:
 
 
 def scene_qa(
-    truth: SceneTruth, seed: int, scene_index: int, per_task: int, horizon: int, min_referent_pixels: int = 8
+    truth: SceneTruth, seed: int, scene_index: int, per_task: int, horizon: int, min_referent_pixels: int
 ) -> list[dict]:
     """All QA records of one scene (deterministic in seed and scene index)."""
     rec = _Records(truth)
