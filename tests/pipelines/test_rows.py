@@ -72,6 +72,20 @@ def test_the_conference_tables_last_row_is_the_journal_tables_first_row():
 
 
 @pytest.mark.parametrize("name", SWEEPS)
+def test_every_row_of_a_shipped_sweep_starts_from_one_llm_built_once(name: str):
+    """The tiny LLM (the stand-in for the released checkpoint) is a stage of its own keyed by model.llm and the data:
+    one build per sweep and seed, shared by every row; the rows' tokenizers still differ."""
+    keys = {r.label: stage_keys(row_config(name, r.label)) for r in sweep(name).rows}
+    assert len({k["llm"] for k in keys.values() if "llm" in k}) == 1
+    assert sum("llm" in k for k in keys.values()) >= len(keys) - 1  # a zero-shot row may not need a tokenizer
+    tokenizers = [k["tokenizer"] for k in keys.values() if "tokenizer" in k]
+    assert len(set(tokenizers)) > 1
+    s = sweep(name)
+    seed1 = load_config([f"targets=[{','.join(s.targets)}]", *s.overrides, *s.rows[-1].overrides, "seed=1"])
+    assert stage_keys(seed1)["llm"] not in {k.get("llm") for k in keys.values()}  # model.llm.seed follows the seed
+
+
+@pytest.mark.parametrize("name", SWEEPS)
 def test_no_two_rows_of_a_shipped_sweep_resolve_to_the_same_stage_keys(name: str):
     keys = {r.label: stage_keys(row_config(name, r.label)) for r in sweep(name).rows}
     for a, b in itertools.combinations(keys, 2):

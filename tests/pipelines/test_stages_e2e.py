@@ -34,8 +34,14 @@ def test_gdwm_run_reconstruct_distill_tokenizer_lora_evaluate_qa(tiny_run):
     # stage 1 and stage 2: per-step losses, a saved world model, the held-out monitor
     tok_loss = client.get_metric_history(runs["tokenizer"].info.run_id, "loss")
     assert [m.step for m in tok_loss] == [0, 1, 2, 3]  # stage.tokenizer: tiny has 4 steps, logged every step
-    (tok,), (lo,) = cache.entries("tokenizer"), cache.entries("lora")
+    (tok,), (lo,), (built,) = cache.entries("tokenizer"), cache.entries("lora"), cache.entries("llm")
     assert {"world.json", "adapter.pt", "llm/model.safetensors", "llm/tokenizer.json"} <= {f.path for f in tok.files}
+    # the tiny LLM is its own stage, keyed by model.llm and the data only: the tokenizer starts from its weights
+    assert {"llm/model.safetensors", "llm/tokenizer.json"} <= {f.path for f in built.files}
+    assert tok.upstream["llm"] == built.key and set(built.config) == {"model.llm"}
+    assert built.extra["instruction_pairs"] == runs["llm"].data.metrics["instruction_pairs"] > 0
+    llm_files = {f.path: f.sha256 for f in built.files}
+    assert {f.path: f.sha256 for f in tok.files}["llm/tokenizer.json"] == llm_files["llm/tokenizer.json"]
     assert {"lora/adapter_model.safetensors", "val_predictions.parquet"} <= {f.path for f in lo.files}
     # both trained world models are zoo versions of their stage runs, with lineage; the newest is the candidate
     (tok_v,), (lora_v,) = (client.search_model_versions(f"name = 'gdwm-{n}'") for n in ("tokenizer", "lora"))

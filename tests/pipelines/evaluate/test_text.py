@@ -3,6 +3,7 @@ import io
 import shutil
 import warnings
 
+import numpy as np
 import pytest
 from pycocoevalcap.bleu.bleu import Bleu
 from pycocoevalcap.cider.cider import Cider
@@ -121,6 +122,30 @@ def test_scores_are_pycocoevalcaps_x100(tokenizer):
     got = text_scores(REFS, PREDS, tokenizer)
     assert got == pytest.approx({"bleu": 100 * bleu[3], "rouge_l": 100 * rouge, "cider": 100 * cider}, abs=1e-9)
     assert 0 < got["bleu"] < 100 and 0 < got["rouge_l"] < 100
+
+
+def test_cooked_once_scores_equal_pycocoevalcaps_on_resamples_with_repeats():
+    # the bootstrap rescores resamples (with repeats) of the same pairs: the cached cooking must give exactly what
+    # pycocoevalcap's own compute_score gives on each resample, CIDEr's document frequencies included
+    refs = [*REFS, "stop. reason: a pedestrian is crossing.", "go straight at 5 m/s.", "x = -12.5, y = -3.0", "", "a"]
+    preds = [*PREDS, "stop.", "go straight at 4 m/s.", "x = 12.5, y = 3.0", "a car", ""]
+    rng, ciders = np.random.default_rng(0), []
+    for _ in range(40):
+        idx = rng.integers(0, len(refs), size=rng.integers(1, 2 * len(refs)))
+        r, p = [refs[i] for i in idx], [preds[i] for i in idx]
+        gts = {k: [t] for k, t in enumerate(tokenize_all(r, Tokenizer.fallback))}
+        res = {k: [t] for k, t in enumerate(tokenize_all(p, Tokenizer.fallback))}
+        bleu, _ = Bleu(4).compute_score(gts, res, verbose=0)
+        want = {
+            "bleu": 100 * float(bleu[3]),
+            "rouge_l": 100 * float(Rouge().compute_score(gts, res)[0]),
+            "cider": 100 * float(Cider().compute_score(gts, res)[0]),
+        }
+        got = text_scores(r, p, Tokenizer.fallback)
+        assert got["bleu"] == want["bleu"] and got["rouge_l"] == want["rouge_l"]  # pycocoevalcap's own arithmetic
+        assert got["cider"] == pytest.approx(want["cider"], rel=1e-12, abs=1e-12)  # numpy CIDEr: sums in another order
+        ciders.append(want["cider"])
+    assert sum(c > 0 for c in ciders) > 30  # the comparison saw real CIDEr values, not only zeros
 
 
 def test_identical_text_scores_full_bleu_and_rouge():
