@@ -3,24 +3,35 @@
 Expected release folder (``source=``), as in the release's ``examples/dummy_data``::
 
     <source>/
-      qa_train.jsonl, qa_val.jsonl, ...       QA records (see gaussiandwm_qa); any ``qa_glob`` match
+      qa_train.jsonl, qa_val.jsonl            QA records (``major_task: qa``, see gaussiandwm_qa)
+      world_train.jsonl, world_val.jsonl      world records (``major_task: world``, see gaussiandwm_world)
       gauss/**/<frame>.pth                    per-frame Gaussian state dicts (see gaussiandwm_pth), e.g.
                                               gauss/output-full-6v/0_CAM_FRONT/langsplat_3/per_frame/00000.pth
-                                              gauss/scene_0002/frame_00000.pth
+      images/*.png, depth/*.npz               world reference, pseudo and ground-truth frames and depths
+      latents/<pack>.dat + latents/meta.json  world target latents, a raw memmap [N, 2, C, H, W]
+      clip_text/features_<k>.npy              CLIP text features [N, 512] of the QA records (see gaussiandwm_clip)
       poses/<scene_idx>.txt                   optional world->ego rows, one per frame (``pose_dir``)
 
-Scene and frame of a ``.pth``: from the QA records that list it in ``gauss_paths`` (their
+Every ``records_glob`` match is read; each record's ``major_task`` says whether it is QA (-> ``qa``, and
+``clip_text`` where it names a feature) or a generation sample (-> ``world``). A record's split comes from the record,
+else its file name (``*_train``/``*_val``), else its scene. The release's own examples repeat one record in
+``qa_train.jsonl`` and ``qa_val.jsonl``: an unchanged record in both splits is handled by ``split_overlap``; any other
+repeated ``sample_uid`` is an error.
+
+Scene and frame of a ``.pth``: from the records that list it in ``gauss_paths`` (their
 ``scene_idx``/``frame_idx``); a file no record lists takes them from its path: the deepest folder
 named ``scene_<n>``/``scene-<n>`` or ``<n>_<anything>`` is the scene, the trailing number of the file
 name the frame. Several files of one frame (e.g. one per view) are merged into its Gaussians.
 Scene ids are ``scene_<idx:04d>`` (the release's numbering, not nuScenes scene names); frames are
 renumbered 0..F-1 per scene in original order, the original index kept in ``frames.token``.
 
-Every path the release or the options name (``gauss_paths``, ``gauss_root``, glob matches, pose files) must resolve,
-symlinks followed, inside ``source=``; one that leads out (``..``, absolute, a symlink) is refused, naming it.
+Every path the release or the options name (``gauss_paths``, world files, CLIP shards, the roots, glob matches, pose
+files) must resolve, symlinks followed, inside ``source=``; one that leads out (``..``, absolute, a symlink) is
+refused, naming it. World files and CLIP shards are checked before anything is written and copied verbatim under
+``release/`` at their source-relative paths (``layout.release_relpath``).
 
-The release has no images, cameras, LiDAR, boxes or timestamps: those tables stay empty (or null),
-``dataset.json`` says so, and ``qa.image`` keeps the release's own image paths.
+The release has no camera rigs, LiDAR, boxes or timestamps: those tables stay empty (or null),
+``dataset.json`` says so, and ``qa.image`` keeps the release's own image paths (QA images are not imported).
 """
 
 from __future__ import annotations
@@ -30,13 +41,16 @@ import logging
 import re
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from pipelines.data.config import DatasetConfig
+from pipelines.data.gaussiandwm_clip import ClipChecker
 from pipelines.data.gaussiandwm_poses import read_pose_file
-from pipelines.data.gaussiandwm_qa import DEFAULT_TASK_MAP, ReleaseRecord, map_task, read_qa_file
+from pipelines.data.gaussiandwm_qa import DEFAULT_TASK_MAP, ReleaseRecord, map_task, read_records_file
+from pipelines.data.gaussiandwm_world import WorldChecker, source_rel
 from pipelines.data.layout import (
     DataError,
     DatasetWriter,
@@ -44,6 +58,7 @@ from pipelines.data.layout import (
     content_params,
     flat_pose,
     gaussians_relpath,
+    release_relpath,
     transform_gaussians,
 )
 from pipelines.data.scene_splits import split_scenes
@@ -53,11 +68,12 @@ log = logging.getLogger(__name__)
 FORMAT = "gaussiandwm_release"
 _SCENE_DIR = re.compile(r"scene[_-]?(\d+)|(\d+)_.+", re.IGNORECASE)
 _FRAME_STEM = re.compile(r"(\d+)$")
+SPLIT_OVERLAP = ("warn", "drop_from_train", "error")
 
 
 @dataclass
 class ReleaseConfig(DatasetConfig):
-    """Import of the public GaussianDWM release (Gaussians + QA, no images)."""
+    """Import of the public GaussianDWM release: Gaussians, QA, world (generation) samples, CLIP text features."""
 
     name: str = "gaussiandwm_release"
     """Dataset name; also the folder under ``<workdir>/data/``."""
@@ -65,18 +81,32 @@ class ReleaseConfig(DatasetConfig):
     """Dotted path of the importer."""
     gauss_glob: str = "gauss/**/*.pth"
     """Glob (relative to the source) of the per-frame Gaussian ``.pth`` files to import."""
-    qa_glob: str = "**/*.jsonl"
-    """Glob (relative to the source) of the QA JSONL files."""
+    records_glob: str = "**/*.jsonl"
+    """Glob (relative to the source) of the record JSONL files, QA and world alike (``major_task`` tells them apart)."""
     gauss_root: str = ""
     """Folder (relative to the source) that the records' ``gauss_paths`` are relative to."""
+    image_root: str = ""
+    """Folder (relative to the source) that world records' image and depth paths are relative to."""
+    latent_root: str = ""
+    """Folder (relative to the source) that world records' ``target_latent_pack_path`` is relative to."""
+    clip_text_root: str = ""
+    """Folder (relative to the source) that QA records' ``clip_text_embed_path`` is relative to."""
     feature_dim: int = 3
     """Width of ``_language_feature`` (the compact feature code); other widths are an error."""
     pose_dir: str = ""
     """Optional folder (relative to the source) of world->ego pose files; empty keeps the release's frame."""
     pose_template: str = "{scene_idx}.txt"
     """File name of a scene's pose file inside ``pose_dir``."""
-    insert_gauss_token: bool = False
-    """Prepend ``<gauss>`` to a first user turn that lacks it (else such a record is an error)."""
+    clip_dim: int = 512
+    """Width of a CLIP text feature (the release's shards are [N, 512]); other widths are an error."""
+    latent_chw: list[int] = field(default_factory=lambda: [4, 56, 96])
+    """[C, H, W] of a target latent in the packs (the release's: SVD latents of 768x448 frames)."""
+    insert_gauss_token: bool = True
+    """Insert ``<gauss>`` at the head of the first user turn, as the release's loader inserts its Gaussian item
+    (the release keeps none in its text); false: a record with ``gauss_paths`` whose text lacks it is an error."""
+    split_overlap: str = "warn"
+    """An unchanged record in both train and val (the release's examples do this): ``warn`` keeps both copies,
+    ``drop_from_train`` keeps the val copy only, ``error`` refuses the import. Every policy names the records."""
     val_fraction: float = 0.1
     """Share of scenes (the last, by id) whose records go to ``val`` when neither record nor file name says."""
     task_map: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_TASK_MAP))
@@ -92,22 +122,35 @@ class _Frame:
 def build(cfg: ReleaseConfig, root: Path, source: str | None, overwrite: bool = False) -> Path:
     """Import the release at ``source`` into a dataset at ``root``; returns the published root."""
     src = _require_source(source)
-    records = _read_records(src, cfg)
+    if cfg.split_overlap not in SPLIT_OVERLAP:
+        raise DataError(f"data.split_overlap is {cfg.split_overlap!r}, expected one of {list(SPLIT_OVERLAP)}")
+    records, overlap = _read_records(src, cfg)
+    records = _apply_split_overlap(records, overlap, cfg.split_overlap)
     frames = _collect_frames(src, cfg, records)
     scene_keys = sorted(frames, key=_scene_sort_key)
     clash = [k for k, n in Counter(map(scene_id, scene_keys)).items() if n > 1]
     if clash:
         raise DataError(f"source={src}: scene_idx values map to the same scene id {clash} (an int and a name)")
     dense = {s: {f: i for i, f in enumerate(sorted(frames[s]))} for s in scene_keys}
-    # Rows first: a bad record fails before any Gaussian is read.
-    qa_rows = _qa_rows(records, frames, dense, split_scenes(scene_keys, cfg.val_fraction), cfg.task_map)
+    splits = split_scenes(scene_keys, cfg.val_fraction)
+    qa = [r for r in records if r.kind == "qa"]
+    world = [r for r in records if r.kind == "world"]
+    # Rows and file checks first: a bad record fails before any Gaussian is read.
+    qa_rows = _qa_rows(qa, frames, dense, splits, cfg.task_map)
+    copies: dict[str, Path] = {}
+    clip_rows = _clip_rows(src, cfg, qa, copies)
+    world_rows = _world_rows(src, cfg, world, frames, dense, splits, copies)
     colors: Counter = Counter()
     params = content_params(cfg, ReleaseConfig)  # the import options; the release itself is source=
     with DatasetWriter(root, cfg.name, source=str(src), overwrite=overwrite, params=params) as w:
         for key in scene_keys:
             _write_scene(w, src, cfg, key, {dense[key][f]: frames[key][f] for f in dense[key]}, colors)
         w.extend("qa", qa_rows)
-        w.extra_meta = _meta(cfg, colors, records, Counter(r["task"] for r in qa_rows))
+        w.extend("world", world_rows)
+        w.extend("clip_text", clip_rows)
+        for rel, path in sorted(copies.items()):
+            w.copy_file(release_relpath(rel), path)
+        w.extra_meta = _meta(cfg, colors, records, qa_rows, world_rows, clip_rows, overlap)
     return w.root
 
 
@@ -159,6 +202,8 @@ def _qa_rows(records: list[ReleaseRecord], frames: dict, dense: dict, splits: di
             "qa_subtask": r.qa_subtask,
             "gauss_paths": r.gauss_paths,
         }
+        if r.clip is not None:
+            provenance |= {"clip_text_embed_path": r.clip.path, "clip_text_embed_row": r.clip.row}
         rows.append(
             {
                 "sample_id": r.sample_uid,
@@ -177,8 +222,103 @@ def _qa_rows(records: list[ReleaseRecord], frames: dict, dense: dict, splits: di
     return rows
 
 
-def _meta(cfg: ReleaseConfig, colors: Counter, records: list[ReleaseRecord], tasks: Counter) -> dict:
-    modalities = {"gaussians": True, "qa": True, "ego_poses": bool(cfg.pose_dir)}
+def _clip_rows(src: Path, cfg: ReleaseConfig, records: list[ReleaseRecord], copies: dict[str, Path]) -> list[dict]:
+    """One row per QA sample that names a CLIP feature; its shard is checked and added to ``copies``."""
+    checker = ClipChecker(src, cfg.clip_text_root, cfg.clip_dim)
+    rows: dict[str, dict] = {}  # a record kept in both splits is one sample: one feature
+    for r in records:
+        if r.clip is None:
+            continue
+        shard = checker.check(f"{r.where} sample '{r.sample_uid}'", r.clip.path, r.clip.row)
+        rel = _add_copy(copies, source_rel(shard, src), shard)
+        rows.setdefault(r.sample_uid, {"sample_id": r.sample_uid, "path": release_relpath(rel), "row": r.clip.row})
+    return list(rows.values())
+
+
+def _world_rows(
+    src: Path,
+    cfg: ReleaseConfig,
+    records: list[ReleaseRecord],
+    frames: dict,
+    dense: dict,
+    splits: dict,
+    copies: dict[str, Path],
+) -> list[dict]:
+    """One row per world record; every file it names is checked and added to ``copies``."""
+    checker = WorldChecker(src, cfg.image_root, cfg.latent_root, tuple(cfg.latent_chw))
+    rows = []
+    for r in records:
+        assert r.world is not None
+        wf = r.world
+        files = checker.check(f"{r.where} sample '{r.sample_uid}'", wf, r.image_paths)
+        for rel, path in files.copies(src).items():
+            _add_copy(copies, rel, path)
+        ours = partial(_copied, src=src)
+        sid, idx = scene_id(r.scene_idx), dense[r.scene_idx][r.frame_idx]
+        has_gauss = bool(r.gauss_paths) and bool(frames[r.scene_idx][r.frame_idx].files)
+        provenance = {
+            "source": FORMAT,
+            "scene_idx": r.scene_idx,
+            "frame_idx": r.frame_idx,
+            "gauss_paths": r.gauss_paths,
+            "image_paths": r.image_paths,
+            "target_latent_pack_path": wf.latent_pack,
+        }
+        rows.append(
+            {
+                "sample_id": r.sample_uid,
+                "scene_token": sid,
+                "frame_idx": idx,
+                "split": r.split or splits[r.scene_idx],
+                "conversations": r.conversations,
+                "views": r.views,
+                "gauss": [gaussians_relpath(sid, idx)] if has_gauss else [],
+                "image": ours(files.images),
+                "ref_image": ours([files.ref_image])[0],
+                "pseudo_rgb": ours(files.pseudo_rgb),
+                "pseudo_depth": ours(files.pseudo_depth),
+                "gt_rgb": ours(files.gt_rgb),
+                "gt_depth": ours(files.gt_depth),
+                "latent_pack": ours([files.latent_pack])[0],
+                "latent_indices": wf.latent_indices,
+                "fps": wf.fps,
+                "motion_bucket_id": wf.motion_bucket_id,
+                "pseudo_source_name": wf.pseudo_source_name,
+                "pseudo_source_kind": wf.pseudo_source_kind,
+                "provenance": json.dumps(provenance),
+            }
+        )
+    return rows
+
+
+def _copied(paths: list[Path], src: Path) -> list[str]:
+    """Dataset paths of source files copied by ``_add_copy``."""
+    return [release_relpath(source_rel(p, src)) for p in paths]
+
+
+def _add_copy(copies: dict[str, Path], rel: str, path: Path) -> str:
+    prev = copies.setdefault(rel, path)
+    if prev != path:
+        raise DataError(f"release/{rel}: would hold both {prev} and {path} (a meta.json beside its pack is a link?)")
+    return rel
+
+
+def _meta(
+    cfg: ReleaseConfig,
+    colors: Counter,
+    records: list[ReleaseRecord],
+    qa_rows: list[dict],
+    world_rows: list[dict],
+    clip_rows: list[dict],
+    overlap: list[tuple[ReleaseRecord, ReleaseRecord]],
+) -> dict:
+    modalities = {
+        "gaussians": True,
+        "qa": True,
+        "ego_poses": bool(cfg.pose_dir),
+        "world": bool(world_rows),
+        "clip_text": bool(clip_rows),
+    }
     modalities |= dict.fromkeys(("images", "cameras", "lidar", "boxes", "timestamps"), False)
     return {
         "format": FORMAT,
@@ -190,11 +330,22 @@ def _meta(cfg: ReleaseConfig, colors: Counter, records: list[ReleaseRecord], tas
             "activation": "scale=exp(_scaling), opacity=sigmoid(_opacity), rotation=_rotation/|_rotation|",
         },
         "qa": {
-            "records": len(records),
-            "by_task": dict(tasks),
+            "records": len(qa_rows),
+            "by_task": dict(Counter(r["task"] for r in qa_rows)),
             "task_map": dict(cfg.task_map),
-            "gauss_token_inserted": sum(r.gauss_token_inserted for r in records),
+            "gauss_token_inserted": sum(r.gauss_token_inserted for r in records if r.kind == "qa"),
             "image_paths": "relative to the release source; images are not imported",
+            "clip_text_features": len(clip_rows),
+        },
+        "world": {
+            "samples": len(world_rows),
+            "by_split": dict(Counter(r["split"] for r in world_rows)),
+            "latent_chw": list(cfg.latent_chw),
+            "files": "copied verbatim under release/ at their source-relative paths",
+        },
+        "split_overlap": {
+            "policy": cfg.split_overlap,
+            "sample_ids": sorted({train.sample_uid for train, _ in overlap}),
         },
         "frame_index": "frames are renumbered 0..F-1 per scene; frames.token holds the release's frame_idx",
     }
@@ -224,20 +375,59 @@ def _require_source(source: str | None) -> Path:
     return src
 
 
-def _read_records(src: Path, cfg: ReleaseConfig) -> list[ReleaseRecord]:
-    files = sorted(src.glob(cfg.qa_glob))
+def _read_records(
+    src: Path, cfg: ReleaseConfig
+) -> tuple[list[ReleaseRecord], list[tuple[ReleaseRecord, ReleaseRecord]]]:
+    """Every record, and the (train, val) pairs of an unchanged record found in both splits."""
+    files = sorted(src.glob(cfg.records_glob))
     if not files:
-        raise DataError(f"source={src}: no QA files match qa_glob={cfg.qa_glob!r}")
+        raise DataError(f"source={src}: no record files match records_glob={cfg.records_glob!r}")
     records: list[ReleaseRecord] = []
-    seen: dict[str, str] = {}
+    first: dict[str, ReleaseRecord] = {}
+    in_split: dict[tuple[str, str | None], ReleaseRecord] = {}
+    overlap = []
     for found in files:
         rel = found.relative_to(src).as_posix()
-        path = contained(src, rel, "QA file")
-        for r in read_qa_file(path, rel, cfg.insert_gauss_token):
-            if r.sample_uid in seen:
-                raise DataError(f"{r.where}: sample_uid '{r.sample_uid}' already used at {seen[r.sample_uid]}")
-            seen[r.sample_uid] = r.where
+        path = contained(src, rel, "record file")
+        for r in read_records_file(path, rel, cfg.insert_gauss_token):
+            prev = first.setdefault(r.sample_uid, r)
+            if prev is not r:
+                # Only an explicit other split makes a repeat an overlap; an unknown one may well be the same.
+                same = in_split.get((r.sample_uid, r.split)) or (None if r.split and prev.split else prev)
+                if same is not None:
+                    raise DataError(f"{r.where}: sample_uid '{r.sample_uid}' already used at {same.where}")
+                if r.content != prev.content:
+                    raise DataError(
+                        f"{r.where}: sample_uid '{r.sample_uid}' already used at {prev.where} for a different record "
+                        "(only an unchanged record may repeat, in the other split)"
+                    )
+                overlap.append((prev, r) if prev.split == "train" else (r, prev))
+            in_split[r.sample_uid, r.split] = r
             records.append(r)
+    return records, overlap
+
+
+def _apply_split_overlap(
+    records: list[ReleaseRecord], overlap: list[tuple[ReleaseRecord, ReleaseRecord]], policy: str
+) -> list[ReleaseRecord]:
+    """``data.split_overlap`` on the records found in both splits: one warning (or error) names them all."""
+    if not overlap:
+        return records
+    shown = ", ".join(f"'{t.sample_uid}' ({t.where}, {v.where})" for t, v in overlap[:5])
+    more = f" and {len(overlap) - 5} more" if len(overlap) > 5 else ""
+    what = f"{len(overlap)} record(s) in both train and val: {shown}{more}"
+    if policy == "error":
+        raise DataError(f"{what} (data.split_overlap=error; warn keeps both copies, drop_from_train keeps val only)")
+    if policy == "drop_from_train":
+        log.warning("%s: %s; dropped from train, kept in val (data.split_overlap=drop_from_train)", FORMAT, what)
+        dropped = {id(t) for t, _ in overlap}
+        return [r for r in records if id(r) not in dropped]
+    log.warning(
+        "%s: %s; kept in both splits (data.split_overlap=warn; drop_from_train keeps them in val only, error refuses "
+        "the import)",
+        FORMAT,
+        what,
+    )
     return records
 
 

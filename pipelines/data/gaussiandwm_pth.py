@@ -9,6 +9,7 @@ Legend: N Gaussians, D feature-code width.
 from __future__ import annotations
 
 import pickle
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +22,8 @@ from pipelines.data.layout import DataError
 SH_C0 = 0.28209479177387814  # zeroth-order real spherical harmonic (3DGS colour = 0.5 + C0 * dc)
 GREY = 0.5
 NESTED_KEY = "gaussians_state"
+_REFUSED_GLOBAL = re.compile(r"GLOBAL ([A-Za-z_][\w.]*[\w])")
+_TORCH_ADVICE = ("Weights only load failed", "Check the documentation", "(1)", "(2)")
 
 _np_core = getattr(np, "_core", None) or np.core  # numpy 2 renamed numpy.core
 # Plain numeric arrays only: object arrays still fail, their elements would need more globals.
@@ -52,13 +55,27 @@ def load_payload(path: Path, where: str) -> object:
         with torch.serialization.safe_globals(_NUMPY_GLOBALS):
             return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as e:
-        detail = str(e).split("WeightsUnpickler error:", 1)[-1].strip().split("\n", 1)[0]
         raise DataError(
-            f"{where}: refused by torch.load(weights_only=True): {detail} "
+            f"{where}: refused by torch.load(weights_only=True): {refusal(str(e))} "
             "(only tensors, containers and numeric arrays are accepted; it is never loaded unsafely)"
         ) from e
     except (RuntimeError, EOFError, KeyError, ValueError, OSError) as e:
         raise DataError(f"{where}: not a readable torch file ({type(e).__name__}: {e})") from e
+
+
+def refusal(message: str) -> str:
+    """What torch's weights-only unpickler refused, e.g. ``unsupported GLOBAL posix.system``.
+
+    Its message leads with advice to retry with ``weights_only=False``, which must never be followed for a
+    downloaded file; the refused global (or else the first line that is not that advice) is what to report.
+    """
+    found = _REFUSED_GLOBAL.search(message)
+    if found:
+        return f"unsupported GLOBAL {found.group(1)}"
+    detail = message.split("WeightsUnpickler error:", 1)[-1]
+    lines = [ln.strip() for ln in detail.splitlines() if ln.strip()]
+    specific = [ln for ln in lines if not ln.startswith(_TORCH_ADVICE)]
+    return (specific or lines or ["unpickling refused"])[0]
 
 
 def state_of(payload: object, where: str) -> Mapping:

@@ -18,6 +18,20 @@ A dataset root looks like::
     scenes/<scene>/lidar/<frame:05d>.arrow               Arrow IPC: x, y, z, intensity (ego frame)
     scenes/<scene>/gaussians/<frame:05d>.arrow           Arrow IPC, GAUSSIAN_SCHEMA (ego frame)
 
+Optional tables (``OPTIONAL_TABLES``), written only by the builders that have such data; a reader sees an empty
+table where the file is absent, so datasets without them keep their bytes and fingerprint::
+
+    world.parquet                generation samples (WORLD_SCHEMA): a reference image, T pseudo RGB-D condition
+                                 frames, T ground-truth RGB/depth frames, fps, and T target latents of a pack
+    clip_text.parquet            a QA sample's CLIP text feature: row ``row`` of the [N, D] ``.npy`` shard ``path``
+    release/<path>               files copied verbatim from the GaussianDWM release at their source-relative paths
+                                 (world images, ``.npz`` depths, latent packs with their ``meta.json``, CLIP shards)
+
+A world sample's paths are relative to the dataset root. Its pseudo depth ``.npz`` holds ``depth_proj``
+(``PSEUDO_DEPTH_KEY``), a ground-truth one the first of ``GT_DEPTH_KEYS`` it has; both [H, W] metres. Its latent
+pack is a raw C-order memmap whose ``dtype``, ``shape`` [N, 2, C, H, W] and ``streams`` (rgb, depth) are in the
+``meta.json`` beside it (``read_latent_meta``); the sample's latents are ``pack[latent_indices]``.
+
 Conventions: ego frame x forward, y left, z up (nuScenes); camera frame x right, y down,
 z forward (OpenCV); quaternions are stored (qw, qx, qy, qz) in tables and converted to the
 paper's (qx, qy, qz, qw) order only in trajectory QA text. Poses are 4x4 row-major.
@@ -43,6 +57,7 @@ import os
 import shutil
 import tempfile
 import uuid
+import zipfile
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -207,6 +222,43 @@ TABLES: dict[str, pa.Schema] = {
     "boxes2d": BOXES2D_SCHEMA,
     "qa": QA_SCHEMA,
 }
+WORLD_SCHEMA = pa.schema(
+    [
+        ("sample_id", pa.string()),
+        ("scene_token", pa.string()),  # == scene_id
+        ("frame_idx", pa.int32()),  # the frame the Gaussians come from
+        ("split", pa.string()),
+        ("conversations", pa.list_(_TURN)),  # the generation instruction, with the <gauss> placeholder
+        ("views", pa.list_(pa.string())),
+        ("gauss", pa.list_(pa.string())),  # paths relative to the dataset root
+        ("image", pa.list_(pa.string())),  # the instruction's input images, relative to the dataset root
+        ("ref_image", pa.string()),  # reference RGB image
+        ("pseudo_rgb", pa.list_(pa.string())),  # T condition frames rendered from the Gaussians
+        ("pseudo_depth", pa.list_(pa.string())),  # T .npz, PSEUDO_DEPTH_KEY
+        ("gt_rgb", pa.list_(pa.string())),  # T ground-truth frames, or none
+        ("gt_depth", pa.list_(pa.string())),  # T .npz, one of GT_DEPTH_KEYS, or none
+        ("latent_pack", pa.string()),  # raw memmap, meta.json beside it
+        ("latent_indices", pa.list_(pa.int32())),  # T rows of the pack, in frame order
+        ("fps", pa.int32()),
+        ("motion_bucket_id", pa.int32()),
+        ("pseudo_source_name", pa.string()),
+        ("pseudo_source_kind", pa.string()),
+        ("provenance", pa.string()),  # JSON: where the record came from
+    ]
+)
+CLIP_TEXT_SCHEMA = pa.schema(
+    [
+        ("sample_id", pa.string()),  # a qa.sample_id
+        ("path", pa.string()),  # [N, D] .npy shard, relative to the dataset root
+        ("row", pa.int32()),
+    ]
+)
+OPTIONAL_TABLES: dict[str, pa.Schema] = {"world": WORLD_SCHEMA, "clip_text": CLIP_TEXT_SCHEMA}
+RELEASE_DIR = "release"
+LATENT_META = "meta.json"
+LATENT_STREAMS = (["rgb", "depth"], ["rgb_latent", "depth_latent"])
+PSEUDO_DEPTH_KEY = "depth_proj"
+GT_DEPTH_KEYS = ("depth", "depth_gt", "depth_proj")
 
 
 def image_relpath(scene_id: str, camera: str, frame_idx: int, weather: str = "clear") -> str:
@@ -224,6 +276,76 @@ def lidar_relpath(scene_id: str, frame_idx: int) -> str:
 
 def gaussians_relpath(scene_id: str, frame_idx: int) -> str:
     return f"scenes/{scene_id}/gaussians/{frame_idx:05d}.arrow"
+
+
+def release_relpath(source_rel: str) -> str:
+    """Where a file copied from the GaussianDWM release lives in the dataset (its source-relative POSIX path)."""
+    return f"{RELEASE_DIR}/{source_rel}"
+
+
+def read_latent_meta(pack: Path, where: str) -> tuple[np.dtype, tuple[int, ...]]:
+    """(dtype, shape) of a latent pack from the ``meta.json`` beside it, checked against the pack's size.
+
+    Errors name ``where`` and the ``meta.json`` field: dtype a float type, shape [N, 2, C, H, W], streams
+    ``LATENT_STREAMS``, and the file exactly ``prod(shape) * itemsize`` bytes (a short pack would read past its end).
+    """
+    meta_path = pack.with_name(LATENT_META)
+    if not pack.is_file():
+        raise DataError(f"{where}: latent pack not found")
+    if not meta_path.is_file():
+        raise DataError(f"{where}: no {LATENT_META} beside the latent pack")
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DataError(f"{where}: {LATENT_META} is not JSON ({e})") from e
+    if not isinstance(meta, dict):
+        raise DataError(f"{where}: {LATENT_META} is a {type(meta).__name__}, expected an object")
+    if meta.get("streams") not in LATENT_STREAMS:
+        raise DataError(f"{where}: {LATENT_META} streams is {meta.get('streams')!r}, expected one of {LATENT_STREAMS}")
+    try:
+        dtype = np.dtype(str(meta.get("dtype")))
+    except TypeError as e:
+        raise DataError(f"{where}: {LATENT_META} dtype {meta.get('dtype')!r} is not a numpy dtype") from e
+    if dtype.kind != "f":
+        raise DataError(f"{where}: {LATENT_META} dtype {meta.get('dtype')!r} is not a float type")
+    shape = meta.get("shape")
+    ok = isinstance(shape, list) and len(shape) == 5 and all(type(v) is int and v > 0 for v in shape)
+    if not ok or shape[1] != 2:
+        raise DataError(f"{where}: {LATENT_META} shape is {shape!r}, expected [N, 2, C, H, W]")
+    need = int(np.prod(shape)) * dtype.itemsize
+    size = pack.stat().st_size
+    if size != need:
+        raise DataError(f"{where}: latent pack is {size} bytes, {LATENT_META} shape {shape} of {dtype} needs {need}")
+    return dtype, tuple(shape)
+
+
+def numpy_load_error(e: Exception) -> str:
+    """Why ``np.load(allow_pickle=False)`` failed, without numpy's advice to allow pickles (never, for a download)."""
+    if isinstance(e, ValueError) and "pickle" in str(e):
+        return "not an array file: it would need unpickling, which is never done"
+    return f"{type(e).__name__}: {e}"
+
+
+def read_depth_npz(path: Path, keys: Sequence[str], where: str) -> np.ndarray:
+    """The [H, W] float32 depth of a ``.npz``: its first array named in ``keys``; no pickles are loaded."""
+    try:
+        npz = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise DataError(f"{where}: not a readable .npz ({numpy_load_error(e)})") from e
+    if not isinstance(npz, np.lib.npyio.NpzFile):
+        raise DataError(f"{where}: a single .npy array, expected an .npz archive")
+    with npz:
+        key = next((k for k in keys if k in npz.files), None)
+        if key is None:
+            want = " or ".join(f"'{k}'" for k in keys)
+            raise DataError(f"{where}: no array {want} in the .npz (arrays: {sorted(npz.files)})")
+        try:
+            depth = npz[key]
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+            raise DataError(f"{where}: array '{key}' is unreadable ({numpy_load_error(e)})") from e
+    if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
+        raise DataError(f"{where}: array '{key}' is {depth.dtype} {list(depth.shape)}, expected a numeric [H, W]")
+    return depth.astype(np.float32)
 
 
 # ----------------------------------------------------------------------------- arrays <-> arrow
@@ -466,10 +588,16 @@ class DatasetWriter:
 
     # -- rows
     def add(self, table: str, **row) -> None:
-        self._tables[table].rows.append(row)
+        self._rows(table).rows.append(row)
 
     def extend(self, table: str, rows: Iterable[Mapping]) -> None:
-        self._tables[table].rows.extend(rows)
+        self._rows(table).rows.extend(rows)
+
+    def _rows(self, table: str) -> _Rows:
+        # An optional table is written once a builder adds to it (even nothing), so other datasets stay unchanged.
+        if table not in self._tables and table in OPTIONAL_TABLES:
+            self._tables[table] = _Rows(OPTIONAL_TABLES[table], [])
+        return self._tables[table]
 
     # -- files
     def write_image(self, rel: str, rgb_HW3: np.ndarray) -> None:

@@ -4,6 +4,8 @@ ds = GSQADataset(root)
 frame = ds.scene("scene-0000").frame(3)
 rgb_HW3 = frame.image("CAM_FRONT")          # uint8 RGB
 gs = frame.gaussians()                       # dict of [N, k] float32 arrays, memory-mapped
+w = ds.world_samples(split="train")[0]       # a generation sample (GaussianDWM release imports)
+latents_T2CHW = w.latents()                  # its target latents, rgb and depth streams
 """
 
 from __future__ import annotations
@@ -20,6 +22,9 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from pipelines.data.layout import (
+    GT_DEPTH_KEYS,
+    OPTIONAL_TABLES,
+    PSEUDO_DEPTH_KEY,
     TABLES,
     WEATHERS,
     DataError,
@@ -29,7 +34,9 @@ from pipelines.data.layout import (
     gaussians_relpath,
     image_relpath,
     lidar_relpath,
+    read_depth_npz,
     read_image_file,
+    read_latent_meta,
 )
 
 
@@ -70,9 +77,68 @@ class GSQADataset:
         return self.meta["fingerprint"]
 
     def table(self, name: str) -> pa.Table:
+        if name in OPTIONAL_TABLES:
+            return self._optional_table(name)
         if name not in TABLES:
-            raise DataError(f"{self.root}: unknown table '{name}' (tables: {sorted(TABLES)})")
+            raise DataError(f"{self.root}: unknown table '{name}' (tables: {sorted(TABLES | OPTIONAL_TABLES)})")
         return self._tables[name]
+
+    def has_table(self, name: str) -> bool:
+        """Whether the dataset has the table (an optional one may be absent: read as empty)."""
+        return name in TABLES or (self.root / f"{name}.parquet").is_file()
+
+    @cached_property
+    def _optional_tables(self) -> dict[str, pa.Table]:
+        return {}
+
+    def _optional_table(self, name: str) -> pa.Table:
+        if name not in self._optional_tables:
+            path = self.root / f"{name}.parquet"
+            found = path.is_file()
+            self._optional_tables[name] = (
+                pq.read_table(path, memory_map=True) if found else OPTIONAL_TABLES[name].empty_table()
+            )
+        return self._optional_tables[name]
+
+    def world(self, split: str | None = None) -> pa.Table:
+        """The generation samples (``world`` table), of one split or all."""
+        t = self.table("world")
+        return t if split is None else t.filter(pc.equal(t["split"], split))
+
+    def world_samples(self, split: str | None = None) -> list[WorldSample]:
+        return [WorldSample(self, row) for row in self.world(split).to_pylist()]
+
+    def world_sample(self, sample_id: str, split: str | None = None) -> WorldSample:
+        """One generation sample; ``split`` picks the copy of a sample kept in both splits."""
+        rows = [r for r in self.world(split).to_pylist() if r["sample_id"] == sample_id]
+        if len(rows) != 1:
+            how = "no" if not rows else f"{len(rows)} (in splits {[r['split'] for r in rows]}; pass split=)"
+            raise DataError(f"{self.root}: {how} world sample '{sample_id}'" + (f" in {split}" if split else ""))
+        return WorldSample(self, rows[0])
+
+    @cached_property
+    def _clip_index(self) -> dict[str, tuple[str, int]]:
+        return {r["sample_id"]: (r["path"], r["row"]) for r in self.table("clip_text").to_pylist()}
+
+    def clip_text_feature(self, sample_id: str) -> np.ndarray:
+        """[D] float32 CLIP text feature of a QA sample (``clip_text`` table)."""
+        if sample_id not in self._clip_index:
+            raise DataError(f"{self.root}: QA sample '{sample_id}' has no CLIP text feature")
+        rel, row = self._clip_index[sample_id]
+        if rel not in self._clip_shards:
+            path = self.root / rel
+            if not path.is_file():
+                raise DataError(f"{self.root}: QA sample '{sample_id}': missing CLIP shard {rel}")
+            self._clip_shards[rel] = np.load(path, mmap_mode="r", allow_pickle=False)
+        return np.array(self._clip_shards[rel][row], dtype=np.float32)
+
+    def clip_text_features(self, sample_ids: list[str]) -> np.ndarray:
+        """[N, D] float32 CLIP text features of QA samples, in the given order."""
+        return np.stack([self.clip_text_feature(s) for s in sample_ids])
+
+    @cached_property
+    def _clip_shards(self) -> dict[str, np.ndarray]:
+        return {}  # memory-mapped once per dataset object
 
     @cached_property
     def _tables(self) -> dict[str, pa.Table]:
@@ -236,3 +302,79 @@ def gaussians_from_table(t: pa.Table) -> dict[str, np.ndarray]:
     else:  # reconstructed, not yet distilled
         out["feature"] = np.zeros((t.num_rows, 0), dtype=np.float32)
     return out
+
+
+class WorldSample:
+    """A generation sample of the ``world`` table: a reference image, T pseudo RGB-D condition frames, T target
+    latents (rgb, depth streams), and optionally T ground-truth frames and depths. Images are [H, W, 3] uint8 RGB,
+    depths [H, W] float32 metres, all at their stored size."""
+
+    def __init__(self, ds: GSQADataset, row: dict):
+        self.ds = ds
+        self.row = row
+
+    def __repr__(self) -> str:
+        return f"WorldSample({self.id!r}, {self.split}, frames={self.num_frames})"
+
+    @property
+    def id(self) -> str:
+        return self.row["sample_id"]
+
+    @property
+    def split(self) -> str:
+        return self.row["split"]
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.row["pseudo_rgb"])
+
+    @property
+    def fps(self) -> int:
+        return int(self.row["fps"])
+
+    @property
+    def where(self) -> str:
+        return f"world sample '{self.id}' ({self.split})"
+
+    def _image(self, rel: str, what: str) -> np.ndarray:
+        img = read_image_file(self.ds.root / rel, f"{self.where} {what}")
+        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+    def ref_image(self) -> np.ndarray:
+        return self._image(self.row["ref_image"], "ref_image")
+
+    def pseudo_rgb(self) -> np.ndarray:
+        """[T, H, W, 3] uint8."""
+        return np.stack([self._image(r, f"pseudo_rgb[{i}]") for i, r in enumerate(self.row["pseudo_rgb"])])
+
+    def pseudo_depth(self) -> np.ndarray:
+        """[T, H, W] float32 metres (the release's ``depth_proj``)."""
+        rels = self.row["pseudo_depth"]
+        return np.stack([self._depth(r, (PSEUDO_DEPTH_KEY,), f"pseudo_depth[{i}]") for i, r in enumerate(rels)])
+
+    def gt_rgb(self) -> np.ndarray:
+        """[T, H, W, 3] uint8; T = 0 when the sample has no ground truth."""
+        rels = self.row["gt_rgb"]
+        if not rels:
+            return np.zeros((0, 0, 0, 3), np.uint8)
+        return np.stack([self._image(r, f"gt_rgb[{i}]") for i, r in enumerate(rels)])
+
+    def gt_depth(self) -> np.ndarray:
+        """[T, H, W] float32 metres; T = 0 when the sample has no ground truth."""
+        rels = self.row["gt_depth"]
+        if not rels:
+            return np.zeros((0, 0, 0), np.float32)
+        return np.stack([self._depth(r, GT_DEPTH_KEYS, f"gt_depth[{i}]") for i, r in enumerate(rels)])
+
+    def _depth(self, rel: str, keys: tuple[str, ...], what: str) -> np.ndarray:
+        path = self.ds.root / rel
+        if not path.is_file():
+            raise DataError(f"{self.where} {what}: missing file {path}")
+        return read_depth_npz(path, keys, f"{self.where} {what} {rel}")
+
+    def latents(self) -> np.ndarray:
+        """[T, 2, C, H, W] float32: rows ``latent_indices`` of the pack, stream 0 rgb, stream 1 depth."""
+        pack = self.ds.root / self.row["latent_pack"]
+        dtype, shape = read_latent_meta(pack, f"{self.where} latent_pack {self.row['latent_pack']}")
+        memmap = np.memmap(pack, mode="r", dtype=dtype, shape=shape)
+        return np.asarray(memmap[list(self.row["latent_indices"])], dtype=np.float32)

@@ -1,4 +1,4 @@
-"""What ``gdwm data info`` prints: counts per table and task family, bytes on disk."""
+"""What ``gdwm data info`` prints: counts per table and task family, generation samples, bytes on disk."""
 
 from __future__ import annotations
 
@@ -15,6 +15,8 @@ def summarize(root: str | Path) -> dict:
     by_task = Counter(qa.column("task").to_pylist())
     by_split = Counter(qa.column("split").to_pylist())
     weathers = sorted({w for ws in ds.table("scenes").column("weathers").to_pylist() for w in ws})
+    world = ds.table("world")  # optional: empty where the dataset has no generation samples
+    world_by_split = Counter(world.column("split").to_pylist())
     return {
         "name": ds.meta["name"],
         "root": str(ds.root.resolve()),
@@ -29,6 +31,20 @@ def summarize(root: str | Path) -> dict:
         "qa_total": qa.num_rows,
         "qa_per_task": {t: by_task.get(t, 0) for t in (*TASKS, *sorted(set(by_task) - set(TASKS)))},
         "qa_per_split": dict(sorted(by_split.items())),
+        "world_samples": world.num_rows,
+        "world_per_split": dict(sorted(world_by_split.items())),
+        "clip_text_features": (clip := ds.table("clip_text").num_rows),
+        "notes": _notes(world.num_rows, world_by_split, clip),
         "files": ds.meta["num_files"],
         "bytes": ds.meta["bytes"],
     }
+
+
+def _notes(world: int, world_by_split: Counter, clip: int) -> list[str]:
+    """Lines ``gdwm data info`` prints under the tables: the optional generation samples and CLIP text features."""
+    notes = []
+    if world:
+        notes.append(f"world samples: {world} ({', '.join(f'{k} {v}' for k, v in sorted(world_by_split.items()))})")
+    if clip:
+        notes.append(f"CLIP text features: {clip} QA samples")
+    return notes

@@ -62,3 +62,5 @@ def print_dataset_summary(s: dict) -> None:
     console.print(q)
     splits = ", ".join(f"{k} {v}" for k, v in s["qa_per_split"].items())
     console.print(f"QA splits: {splits or '-'}")
+    for line in s.get("notes", ()):  # whatever else the dataset's summarizer has to say, one line each
+        console.print(line)

@@ -1,4 +1,5 @@
-"""Import of the GaussianDWM public release: round trip through GSQADataset and exact errors."""
+"""Import of the GaussianDWM public release (QA records and Gaussians): round trip through GSQADataset and exact
+errors. World samples, CLIP features and the split-overlap policy: test_gaussiandwm_world.py."""
 
 from __future__ import annotations
 
@@ -10,16 +11,18 @@ import pytest
 import torch
 
 from pipelines.data.gaussiandwm import ReleaseConfig, build, ids_from_path
-from pipelines.data.gaussiandwm_pth import SH_C0
+from pipelines.data.gaussiandwm_pth import SH_C0, refusal
 from pipelines.data.layout import DataError, pose_matrix
 from pipelines.data.reader import GSQADataset
 from tests.pipelines.data.fixtures_release import (
     BACK0,
+    CLIP_SHARD,
     FRONT0,
     FRONT1,
     S2F0,
     S2F3,
     NotATensor,
+    RunsACommand,
     gaussian_fields,
     record,
     write_jsonl,
@@ -103,19 +106,36 @@ def test_gaussians_round_trip(imported, release):
 
 
 def test_qa_records_are_mapped(imported):
-    rows = {r["sample_id"]: r for r in imported.qa().to_pylist()}
-    assert sorted(rows) == ["q1", "q2", "q3", "q4"]
-    assert {k: r["task"] for k, r in rows.items()} == {"q1": "rdp", "q2": "vg2d", "q3": "vg3d", "q4": "plan"}
+    qa = imported.qa().to_pylist()
+    # q5 is in qa_train.jsonl and qa_val.jsonl, as the release's examples repeat a record (split_overlap=warn).
+    assert [(r["sample_id"], r["split"]) for r in qa] == [
+        ("q1", "train"),
+        ("q2", "train"),
+        ("q3", "train"),
+        ("q5", "train"),
+        ("q4", "val"),
+        ("q5", "val"),
+    ]
+    rows = {r["sample_id"]: r for r in qa}
+    assert {k: r["task"] for k, r in rows.items()} == {
+        "q1": "rdp",
+        "q2": "vg2d",
+        "q3": "vg3d",
+        "q4": "plan",
+        "q5": "rdp",
+    }
     q2 = rows["q2"]
+    # The release's text has no <gauss>: its loader puts the Gaussian item right before the first user text.
     assert q2["conversations"] == [
-        {"from": "human", "value": "Based on <gauss>, where is it?"},
+        {"from": "human", "value": "<gauss>Where is the car?"},
         {"from": "gpt", "value": "answer of q2"},
     ]
     assert q2["category"] == "NuInteract_2DVG/2D_perception_location"
     assert (q2["scene_token"], q2["frame_idx"], q2["split"]) == ("scene_0000", 1, "train")
     assert q2["gauss"] == ["scenes/scene_0000/gaussians/00001.arrow"]
     assert (q2["image"], q2["views"]) == (["images/q2.png"], ["CAM_FRONT"])
-    assert json.loads(q2["gt"])["gauss_paths"] == [FRONT1]
+    gt = json.loads(q2["gt"])
+    assert (gt["gauss_paths"], gt["clip_text_embed_path"], gt["clip_text_embed_row"]) == ([FRONT1], CLIP_SHARD, 0)
     assert (rows["q4"]["scene_token"], rows["q4"]["split"]) == ("scene_0002", "val")
     assert [r["sample_id"] for r in imported.qa(split="train", task="vg3d").to_pylist()] == ["q3"]
 
@@ -124,9 +144,12 @@ def test_meta_records_what_the_release_lacks(imported):
     meta = imported.meta
     assert meta["format"] == "gaussiandwm_release"
     assert meta["modalities"]["images"] is False and meta["modalities"]["gaussians"] is True
+    assert meta["modalities"]["world"] is True and meta["modalities"]["clip_text"] is True
     assert meta["gaussians"]["files_by_color_source"] == {"sh_dc": 2, "grey": 3}
     assert meta["gaussians"]["frame"] == "as released (no pose_dir given)"
-    assert meta["qa"]["by_task"] == {"rdp": 1, "vg2d": 1, "vg3d": 1, "plan": 1}
+    assert meta["qa"]["by_task"] == {"rdp": 3, "vg2d": 1, "vg3d": 1, "plan": 1}
+    assert (meta["qa"]["records"], meta["qa"]["gauss_token_inserted"], meta["qa"]["clip_text_features"]) == (6, 6, 5)
+    assert meta["world"]["samples"] == 3 and meta["world"]["by_split"] == {"train": 2, "val": 1}
     assert (meta["num_scenes"], meta["num_frames"], meta["cameras"]) == (2, 4, [])
 
 
@@ -156,25 +179,39 @@ def test_ids_from_release_paths():
     assert ids_from_path(Path("gauss/misc/model.pth")) is None
 
 
-def test_missing_gauss_token_names_sample_and_line(release, tmp_path):
+def test_gauss_token_is_inserted_by_default_and_required_when_insertion_is_off(release, tmp_path):
     records = [
-        record("ok", 0, 0, [FRONT0], "NuInteract_RD&P", "prediction", "<gauss> fine"),
+        record("ok", 0, 0, [FRONT0], "NuInteract_RD&P", "prediction", "Based on <gauss>, fine?"),
         record("nogauss", 0, 1, [FRONT1], "NuInteract_RD&P", "prediction", "What is likely to happen next?"),
     ]
     write_jsonl(release.root / "qa_train.jsonl", records)
     root = tmp_path / "out"
+    ds = GSQADataset(build(ReleaseConfig(), root, str(release.root)))
+    turns = {r["sample_id"]: r["conversations"][0]["value"] for r in ds.qa().to_pylist()}
+    assert turns["nogauss"] == "<gauss>What is likely to happen next?"
+    assert turns["ok"] == "Based on <gauss>, fine?"  # one placeholder already: none added
+    assert ds.meta["qa"]["gauss_token_inserted"] == 3  # nogauss, q4, q5 (qa_val.jsonl)
+    off = tmp_path / "off"
     with pytest.raises(DataError) as e:
-        build(ReleaseConfig(), root, str(release.root))
+        build(ReleaseConfig(insert_gauss_token=False), off, str(release.root))
     assert str(e.value) == (
         "qa_train.jsonl:2 sample 'nogauss': first user turn lacks '<gauss>' although the record has gauss_paths "
-        "(set insert_gauss_token=true to prepend it)"
+        "(set insert_gauss_token=true to insert it as the release's loader does)"
     )
-    assert_nothing_published(root)
-    ds = GSQADataset(build(ReleaseConfig(insert_gauss_token=True), root, str(release.root)))
-    turns = {r["sample_id"]: r["conversations"][0]["value"] for r in ds.qa().to_pylist()}
-    assert turns["nogauss"] == "<gauss>\nWhat is likely to happen next?"
-    assert turns["ok"] == "<gauss> fine"
-    assert ds.meta["qa"]["gauss_token_inserted"] == 1
+    assert_nothing_published(off)
+
+
+def test_records_that_carry_the_placeholder_import_unchanged_with_insertion_off(release, tmp_path):
+    for name in ("qa_train.jsonl", "qa_val.jsonl", "world_train.jsonl", "world_val.jsonl"):
+        lines = (release.root / name).read_text().splitlines()
+        recs = [json.loads(x) for x in lines]
+        for r in recs:
+            r["conversations"][0]["content"] = "<gauss>\n" + r["conversations"][0]["content"]
+        write_jsonl(release.root / name, recs)
+    ds = GSQADataset(build(ReleaseConfig(insert_gauss_token=False), tmp_path / "out", str(release.root)))
+    assert ds.qa().to_pylist()[1]["conversations"][0]["value"] == "<gauss>\nWhere is the car?"
+    assert ds.world().to_pylist()[0]["conversations"][0]["value"] == "<gauss>\nGenerate the next 3 frames."
+    assert ds.meta["qa"]["gauss_token_inserted"] == 0
 
 
 def test_malformed_jsonl_line_names_file_and_line(release, tmp_path):
@@ -183,7 +220,7 @@ def test_malformed_jsonl_line_names_file_and_line(release, tmp_path):
     root = tmp_path / "out"
     with pytest.raises(DataError) as e:
         build(ReleaseConfig(), root, str(release.root))
-    assert str(e.value) == "qa_val.jsonl:2: malformed JSON (Expecting value at column 16)"
+    assert str(e.value) == "qa_val.jsonl:3: malformed JSON (Expecting value at column 16)"
     assert_nothing_published(root)
 
 
@@ -243,11 +280,42 @@ def test_pickled_object_is_refused_by_weights_only_loading(release, tmp_path):
     root = tmp_path / "out"
     with pytest.raises(DataError) as e:
         build(ReleaseConfig(), root, str(release.root))
-    assert str(e.value).startswith(
-        f"{S2F3}: refused by torch.load(weights_only=True): Unsupported global: "
-        "GLOBAL tests.pipelines.data.fixtures_release.NotATensor was not an allowed global by default."
+    assert str(e.value) == (
+        f"{S2F3}: refused by torch.load(weights_only=True): unsupported GLOBAL "
+        "tests.pipelines.data.fixtures_release.NotATensor "
+        "(only tensors, containers and numeric arrays are accepted; it is never loaded unsafely)"
     )
     assert_nothing_published(root)
+
+
+def test_a_pickled_call_of_os_system_is_refused_by_name_and_never_run(release, tmp_path):
+    marker = tmp_path / "it_ran"
+    fields = gaussian_fields(3, seed=1)
+    fields["_xyz"] = RunsACommand(f"touch {marker}")  # pickled as GLOBAL posix.system + its argument
+    write_pth(release.root / S2F3, fields, nested=True)
+    assert b"posix" in (release.root / S2F3).read_bytes()  # the global is in the file (torch.save zips it unpacked)
+    root = tmp_path / "out"
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(), root, str(release.root))
+    # torch's own message leads with advice to retry with weights_only=False: never shown, never followed.
+    assert str(e.value) == (
+        f"{S2F3}: refused by torch.load(weights_only=True): unsupported GLOBAL posix.system "
+        "(only tensors, containers and numeric arrays are accepted; it is never loaded unsafely)"
+    )
+    assert not marker.exists()
+    assert_nothing_published(root)
+
+
+def test_refusal_reports_what_torch_refused_not_its_advice():
+    advice = "Weights only load failed. Re-running `torch.load` with `weights_only` set to `False` will likely succeed"
+    docs = "Check the documentation of torch.load to learn more about types accepted by default with weights_only"
+    blocked = f"{advice}\n\n\nTrying to load unsupported GLOBAL posix.system whose module posix is blocked.\n\n{docs}"
+    assert refusal(blocked) == "unsupported GLOBAL posix.system"
+    listed = f"{advice}\n\t(2) Alternatively...\n\tWeightsUnpickler error: Unsupported global: GLOBAL a.B was not..."
+    assert refusal(listed) == "unsupported GLOBAL a.B"
+    assert (
+        refusal(f"{advice}\n\tWeightsUnpickler error: Unsupported operand 149\n\n{docs}") == "Unsupported operand 149"
+    )
 
 
 def test_numpy_array_fields_load(release, tmp_path):
@@ -266,8 +334,10 @@ def test_source_is_required(tmp_path):
 
 
 def test_split_by_scene_when_file_names_say_nothing(release, tmp_path):
-    (release.root / "qa_train.jsonl").rename(release.root / "nuinteract_part1.jsonl")
-    (release.root / "qa_val.jsonl").rename(release.root / "nuinteract_part2.jsonl")
+    write_jsonl(release.root / "nuinteract_part1.jsonl", release.records[:3])
+    write_jsonl(release.root / "nuinteract_part2.jsonl", release.records[4:])  # q4; q5 left out
+    (release.root / "qa_train.jsonl").unlink()
+    (release.root / "qa_val.jsonl").unlink()
     ds = GSQADataset(build(ReleaseConfig(val_fraction=0.5), tmp_path / "out", str(release.root)))
     assert {r["sample_id"]: r["split"] for r in ds.qa().to_pylist()} == {
         "q1": "train",
@@ -279,10 +349,33 @@ def test_split_by_scene_when_file_names_say_nothing(release, tmp_path):
 
 def test_duplicate_sample_uid_names_both_lines(release, tmp_path):
     with open(release.root / "qa_val.jsonl", "a") as f:
-        f.write(json.dumps(record("q2", 2, 0, [S2F0], "NuInteract_RD&P", "prediction", "<gauss> again")) + "\n")
+        f.write(json.dumps(record("q2", 2, 0, [S2F0], "NuInteract_RD&P", "prediction", "again")) + "\n")
     with pytest.raises(DataError) as e:
         build(ReleaseConfig(), tmp_path / "out", str(release.root))
-    assert str(e.value) == "qa_val.jsonl:2: sample_uid 'q2' already used at qa_train.jsonl:2"
+    # In the other split, but not the same record: never taken for the release's repeated examples.
+    assert str(e.value) == (
+        "qa_val.jsonl:3: sample_uid 'q2' already used at qa_train.jsonl:2 for a different record "
+        "(only an unchanged record may repeat, in the other split)"
+    )
+
+
+@pytest.mark.parametrize(
+    ("name", "message"),
+    [
+        ("qa_train.jsonl", "qa_train.jsonl:5: sample_uid 'q1' already used at qa_train.jsonl:1"),
+        ("qa_train_more.jsonl", "qa_train_more.jsonl:1: sample_uid 'q1' already used at qa_train.jsonl:1"),
+        ("nuinteract_extra.jsonl", "qa_train.jsonl:1: sample_uid 'q1' already used at nuinteract_extra.jsonl:1"),
+    ],
+)
+def test_an_unchanged_record_repeated_in_one_split_is_an_error(release, tmp_path, name, message):
+    """The same file, another file of the same split, or a file whose split is unknown: never a split overlap."""
+    with open(release.root / name, "a") as f:
+        f.write(json.dumps(release.records[0], separators=(",", ":")) + "\n")
+    root = tmp_path / "out"
+    with pytest.raises(DataError) as e:
+        build(ReleaseConfig(split_overlap="drop_from_train"), root, str(release.root))
+    assert str(e.value) == message
+    assert_nothing_published(root)
 
 
 def test_missing_and_conflicting_gauss_paths(release, tmp_path):
@@ -372,7 +465,8 @@ def test_a_qa_file_symlinked_from_outside_is_refused(release, tmp_path):
     with pytest.raises(DataError) as e:
         build(ReleaseConfig(), root, str(release.root))
     assert str(e.value) == (
-        f"QA file qa_more.jsonl leads outside {release.root.resolve()} (to {outside.resolve()}); refusing to read it"
+        f"record file qa_more.jsonl leads outside {release.root.resolve()} (to {outside.resolve()}); "
+        "refusing to read it"
     )
     assert_nothing_published(root)
 

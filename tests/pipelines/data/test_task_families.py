@@ -16,6 +16,7 @@ from model_zoo.llm.qwen3_vl import LLMConfig
 from model_zoo.selectors import SelectorConfig
 from pipelines.data.layout import GAUSS_TOKEN, TASKS
 from pipelines.data.reader import GSQADataset
+from pipelines.stages.llm import llm
 from pipelines.stages.tokenizer import tokenizer
 from pipelines.understanding.config import TokenizerStageConfig, WorldConfig
 from pipelines.understanding.data import gaussians_path
@@ -44,19 +45,31 @@ def distilled_one_frame_excluded(synth_small, tmp_path_factory) -> dict[str, Pat
     return dirs
 
 
+TINY_LLM = LLMConfig(tiny=True, hidden_size=32, intermediate_size=64, pretrain_steps=0)
+
+
+def run_llm_stage(data: Path, out: Path) -> UpstreamOutput:
+    """The llm stage in-process: the tiny LLM the tokenizer stage starts from."""
+    config = {"model.llm": asdict(TINY_LLM)}
+    ctx = StageContext("llm", "l" * 64, config, out, {}, data, "fp", Recorder(), out / "ck", {})
+    out.mkdir(parents=True)
+    return UpstreamOutput("llm", "l" * 64, out, llm.fn(ctx))
+
+
 def run_tokenizer_stage(data: Path, dirs: dict[str, Path], out: Path, gaussian_tokens: bool) -> Recorder:
     """The tokenizer stage in-process with no steps (nothing trains, so no Ray); its tracker records the params."""
+    built = run_llm_stage(data, out.with_name(out.name + "-llm"))
     config = {
         "model.world": asdict(WorldConfig(gaussian_tokens=gaussian_tokens)),
         "model.selector": asdict(SelectorConfig(name="driving_aware", k_c=16)),
         "model.projection": asdict(ProjectionConfig(fourier_features=2)),
         "model.fine_adapter": asdict(FineAdapterConfig(name="query_xattn", k_f=4, heads=2)),
         "model.alignment": asdict(AlignmentConfig(name="kl")),
-        "model.llm": asdict(LLMConfig(tiny=True, hidden_size=32, intermediate_size=64)),
+        "model.llm": asdict(TINY_LLM),
         "stage.tokenizer": asdict(TokenizerStageConfig(steps=0, eval_samples=0)),
     }
     rec = Recorder()
-    up = {"distill": UpstreamOutput("distill", "d" * 64, None, {}, dirs)}
+    up = {"llm": built, "distill": UpstreamOutput("distill", "d" * 64, None, {}, dirs)}
     ctx = StageContext("tokenizer", "t" * 64, config, out, up, data, "fp", rec, out / "ck", {}, seed=0)
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
