@@ -16,6 +16,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from model_zoo.quaternion import quat_to_rotmat
 from model_zoo.render.camera import Camera
 
 ALPHA_MIN = 1.0 / 255.0
@@ -26,20 +27,6 @@ T_MIN = 1e-4
 """Front-to-back compositing stops before the Gaussian that would take transmittance below this (3DGS)."""
 FOV_CLAMP = 0.3
 """The Jacobian is evaluated with x/z, y/z clamped to the image plus 0.3 x half its extent (3DGS, gsplat)."""
-
-
-def quat_to_rotmat(quats_N4: Tensor) -> Tensor:
-    """Rotation matrices ``R_N33`` from (w, x, y, z) quaternions, normalised here."""
-    w, x, y, z = torch.nn.functional.normalize(quats_N4, dim=-1).unbind(-1)
-    R = torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    )  # fmt: skip
-    return R.reshape(*quats_N4.shape[:-1], 3, 3)
 
 
 def covariance_3d(scales_N3: Tensor, quats_N4: Tensor) -> Tensor:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 
 @dataclass
@@ -22,3 +22,7 @@ class DatasetConfig:
     would write, writing nothing (a dry run's plan; a bad key is exit 2 before anything is generated)."""
     summarizer: str = "pipelines.data.summary.summarize"
     """Dotted path of ``summarize(root) -> dict`` used by ``gdwm data info``."""
+    tables: list[str] = field(default_factory=list)
+    """What a dataset of this option holds (tables, per-scene file kinds such as ``images``; see
+    ``layout.held_tables``) before it exists: a dry run of a dataset generated on demand checks the stages' needs
+    against it. Once built, its ``dataset.json`` ``tables`` is what counts. Empty: unknown, nothing is checked."""

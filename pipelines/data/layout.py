@@ -278,6 +278,26 @@ def gaussians_relpath(scene_id: str, frame_idx: int) -> str:
     return f"scenes/{scene_id}/gaussians/{frame_idx:05d}.arrow"
 
 
+_FILE_KINDS = {"images": "images", "depth": "depth", "lidar": "lidar", "gaussians": "gaussians"}
+"""Per-scene file folders (``scenes/<id>/<folder>/...``; ``images_<weather>`` counts as images) -> table name."""
+
+
+def held_tables(root: Path, files: Iterable[str]) -> list[str]:
+    """What a dataset holds, by name: every parquet table with a row, every kind of per-scene file (images, depth,
+    lidar, gaussians) and ``routes`` (``routes.json``). Written to ``dataset.json`` as ``tables``: a run refuses,
+    before launch, a stage that needs one it lacks (``gdwm.stage.stage(needs=...)``)."""
+    held = {p.stem for p in root.glob("*.parquet") if pq.read_metadata(p).num_rows > 0}
+    for rel in files:
+        parts = rel.split("/")
+        if len(parts) > 3 and parts[0] == "scenes":
+            kind = _FILE_KINDS.get(parts[2].split("_")[0])
+            if kind:
+                held.add(kind)
+    if (root / ROUTES_FILE).is_file():
+        held.add("routes")
+    return sorted(held)
+
+
 def release_relpath(source_rel: str) -> str:
     """Where a file copied from the GaussianDWM release lives in the dataset (its source-relative POSIX path)."""
     return f"{RELEASE_DIR}/{source_rel}"
@@ -645,6 +665,7 @@ class DatasetWriter:
             "num_frames": frames,
             "num_files": nfiles,
             "bytes": nbytes,
+            "tables": held_tables(self.tmp, files),
             **self.extra_meta,
             "fingerprint": fingerprint,
             "params": self.params,

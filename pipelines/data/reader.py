@@ -274,9 +274,6 @@ class Frame:
         t = read_arrow(self.scene.ds.root / rel, f"{self.where} lidar")
         return np.stack([t[c].to_numpy() for c in ("x", "y", "z", "intensity")], axis=1)
 
-    def has_gaussians(self) -> bool:
-        return (self.scene.ds.root / gaussians_relpath(self.scene.id, self.idx)).is_file()
-
     def gaussians(self) -> dict[str, np.ndarray]:
         """Gaussians in the ego frame: xyz/scale [N,3], rotation [N,4], opacity [N], color [N,3], feature [N,D]."""
         rel = gaussians_relpath(self.scene.id, self.idx)

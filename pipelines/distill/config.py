@@ -10,6 +10,7 @@ class Encoder(StrEnum):
     daisy = "daisy"
     qwen3_vl_vision = "qwen3_vl_vision"
     langsplat_proxy = "langsplat_proxy"
+    langsplat = "langsplat"
 
 
 class FeatureTokenizer(StrEnum):
@@ -24,7 +25,13 @@ class DistillConfig:
     encoder: Encoder = Encoder.daisy
     """E_F: the foundation encoder, ``daisy`` (CPU) or ``qwen3_vl_vision`` (a local Qwen3-VL checkpoint); or
     ``langsplat_proxy``, the stand-in for LangSplat's region-level language features that the ablations' "Distillation
-    ✗" rows distil instead (with ``feature_tokenizer=langsplat3``, see ``model_zoo.encoders.langsplat_proxy``)."""
+    ✗" rows distil instead (with ``feature_tokenizer=langsplat3``, see ``model_zoo.encoders.langsplat_proxy``); or
+    ``langsplat``, LangSplat's own 3-d codes as a dataset ships them (the GaussianDWM release, whose pipeline takes
+    them as they are: ``pipelines.stages.given``; nothing computes them from images here)."""
+    language_encoder: Encoder = Encoder.langsplat_proxy
+    """What the "Distillation ✗" rows of the shipped sweeps take as LangSplat's language features (they set
+    ``encoder=${stage.distill.language_encoder}``): ``langsplat_proxy`` computed from the images, or ``langsplat``
+    on a dataset that ships the codes (``experiment=gaussiandwm_release`` sets it)."""
     encoder_path: str | None = None
     """Local checkpoint directory of ``qwen3_vl_vision``."""
     encoder_tiny: bool = False

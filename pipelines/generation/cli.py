@@ -58,7 +58,7 @@ class EditArgs:
 
 def _require(value: Any, key: str) -> Any:
     if value in (None, ""):
-        from gdwm.cli import CommandError
+        from gdwm.errors import CommandError
 
         raise CommandError(f"{key} is required")
     return value
@@ -78,7 +78,7 @@ def _runtime(cfg) -> Runtime:
     """Run (or hit the cache of) everything ``diffusion`` needs; load what generation uses."""
     from omegaconf import OmegaConf
 
-    from gdwm.cli import CommandError
+    from gdwm.errors import CommandError
     from gdwm.runner import run_pipeline
     from model_zoo.diffusion.rgbd_dual import RGBDDual
     from pipelines.data.reader import GSQADataset
@@ -189,7 +189,7 @@ def generate(cfg, _argv: list[str]) -> int:
     scene = _require(a.scene, "args.scene")
     rt = _runtime(cfg)
     if scene not in rt.rec_dirs:
-        from gdwm.cli import CommandError
+        from gdwm.errors import CommandError
 
         raise CommandError(f"args.scene: no reconstruction of '{scene}' (scenes: {sorted(rt.rec_dirs)})")
     rate = float(rt.ds.scene(scene).info["frame_rate_hz"])
@@ -198,7 +198,7 @@ def generate(cfg, _argv: list[str]) -> int:
         h = horizon_frames(s, rate)
         targets.append(GenTarget(scene, a.frame, a.camera, "future", horizon_frames=h, horizon_s=float(s)))
     if not targets:
-        from gdwm.cli import CommandError
+        from gdwm.errors import CommandError
 
         raise CommandError("args.shifts_m and args.horizons_s are both empty: nothing to generate")
     gaussians = frame_gaussians(rt.rec_dirs[scene], scene, a.frame)
@@ -239,7 +239,7 @@ def edit(cfg, _argv: list[str]) -> int:
     import torch
     from scipy.ndimage import binary_dilation
 
-    from gdwm.cli import CommandError
+    from gdwm.errors import CommandError
     from gdwm.term import console
     from pipelines.generation.edits import ReferenceFrame, Weather, edit_instruction, parse_edit
     from pipelines.generation.samples import GenTarget, build_example, edited_example, frame_gaussians, stack

@@ -5,6 +5,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+VIEW_TARGETS = {
+    "cameras": "projects the Gaussians into the target camera",
+    "images": "its targets and references are camera images",
+    "depth": "its depth targets",
+    "ego_poses": "its shift and future targets move the camera along the ego path",
+}
+"""Dataset tables the generation stages on camera views read (``gdwm.stage.stage(needs=...)``)."""
+
 
 @dataclass
 class VaeStageConfig:

@@ -28,10 +28,6 @@ from pipelines.recon.init import box_pose
 # ----------------------------------------------------------------------------- Gaussian sets
 
 
-def _num_rows(g: dict[str, np.ndarray]) -> int:
-    return len(g["xyz"])
-
-
 def _select(g: dict[str, np.ndarray], mask_N: np.ndarray) -> dict[str, np.ndarray]:
     return {k: np.asarray(v)[mask_N] for k, v in g.items()}
 

@@ -46,6 +46,13 @@ def pooled_groups(names: list[str]) -> dict[str, list[str]]:
     }
 
 
+def clip_position(target) -> tuple[tuple, int]:
+    """(clip key, frame) of a scored target: its (scene, camera) and frame, unless it names its own ``clip`` (a world
+    sample's frames are a clip of their own: ``pipelines.generation.world.WorldTarget``)."""
+    own = getattr(target, "clip", None)
+    return own if own is not None else ((target.scene, target.camera), target.frame)
+
+
 def clips(scored: list, names: list[str], frames: int) -> list[list[int]]:
     """Indices into ``scored`` of every clip of ``frames`` consecutive frames of one (scene, camera, target), in frame
     order: non-overlapping windows of each run of consecutive frames; the incomplete tail of a run is left out."""
@@ -53,7 +60,8 @@ def clips(scored: list, names: list[str], frames: int) -> list[list[int]]:
     for i, (ex, _, _) in enumerate(scored):
         t = ex.target
         if t.name in names:
-            seqs[(t.name, t.scene, t.camera)].append((t.frame, i))
+            key, frame = clip_position(t)
+            seqs[(t.name, *key)].append((frame, i))
     out = []
     for key in sorted(seqs):
         run: list[int] = []

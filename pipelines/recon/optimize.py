@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from model_zoo.quaternion import quat_mul, quat_to_rotmat
 from model_zoo.render import Camera, rasterize
 from pipelines.data.layout import matrix_to_quat_wxyz
 from pipelines.recon.config import ReconstructConfig
@@ -88,7 +89,7 @@ class FramePoses:
         idx = g.instance.clamp(min=0)
         moved = torch.einsum("nij,nj->ni", self.R_K33[idx], g.means) + self.t_K3[idx]
         means = torch.where(dyn[:, None], moved, g.means)
-        quats = torch.where(dyn[:, None], _quat_mul(self.q_K4[idx], g.quats), g.quats)
+        quats = torch.where(dyn[:, None], quat_mul(self.q_K4[idx], g.quats), g.quats)
         keep = ~dyn | self.present_K[idx]
         return means[keep], quats[keep], keep
 
@@ -230,7 +231,7 @@ class Trainer:
                 std = g.log_scales[idx].exp()
                 for _ in range(2):
                     offs = torch.randn_like(std) * std
-                    rot = _quat_to_mat(torch.nn.functional.normalize(g.quats[idx], dim=1))
+                    rot = quat_to_rotmat(g.quats[idx])
                     new["means"].append(g.means[idx] + torch.einsum("nij,nj->ni", rot, offs))
                     new["log_scales"].append(g.log_scales[idx] - math.log(1.6))
                     for k in ("quats", "opacity_logits", "color_logits"):
@@ -247,38 +248,6 @@ class Trainer:
         for group in self.opt.param_groups:
             if group["name"] == "opacity_logits":
                 self.opt.state.pop(group["params"][0], None)
-
-
-def _quat_mul(a_N4: torch.Tensor, b_N4: torch.Tensor) -> torch.Tensor:
-    w1, x1, y1, z1 = a_N4.unbind(1)
-    w2, x2, y2, z2 = b_N4.unbind(1)
-    return torch.stack(
-        [
-            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        ],
-        dim=1,
-    )
-
-
-def _quat_to_mat(q_N4: torch.Tensor) -> torch.Tensor:
-    w, x, y, z = q_N4.unbind(1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - z * w),
-            2 * (x * z + y * w),
-            2 * (x * y + z * w),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - x * w),
-            2 * (x * z - y * w),
-            2 * (y * z + x * w),
-            1 - 2 * (x * x + y * y),
-        ],
-        dim=1,
-    ).reshape(-1, 3, 3)
 
 
 def optimise(

@@ -29,7 +29,7 @@ from model_zoo.diffusion.rgbd_dual import DiffusionConfig, RGBDDual
 from model_zoo.diffusion.vpred import depth_to_rgb
 from pipelines.data.reader import GSQADataset
 from pipelines.generation.conditions import NoGaussiansInView
-from pipelines.generation.config import DiffusionStageConfig, VaeStageConfig
+from pipelines.generation.config import VIEW_TARGETS, DiffusionStageConfig, VaeStageConfig
 from pipelines.generation.samples import (
     KINDS,
     GenExample,
@@ -68,7 +68,8 @@ def split_scenes(ds: GSQADataset, available: set[str]) -> dict[str, list[str]]:
     return out
 
 
-@stage("diffusion_vae", "1", config=[MODEL, "stage.diffusion_vae"], upstream=["reconstruct"], resources="train")
+@stage("diffusion_vae", "1", config=[MODEL, "stage.diffusion_vae"], upstream=["reconstruct"], resources="train",
+       needs={"images": "fits the VAE to the camera images"})  # fmt: skip
 def diffusion_vae(ctx: StageContext) -> dict:
     cfg = diffusion_config(ctx)
     vcfg = VaeStageConfig(**ctx.cfg("stage.diffusion_vae"))
@@ -220,6 +221,7 @@ def save_grid(path: Path, ex: GenExample, rgb: torch.Tensor) -> None:
     upstream=["diffusion_vae", "reconstruct", "lora", "distill"],
     resources="train",
     seeded=True,
+    needs=VIEW_TARGETS,
 )
 def diffusion(ctx: StageContext) -> dict:
     mcfg = diffusion_config(ctx)

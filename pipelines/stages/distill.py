@@ -43,6 +43,11 @@ def load_encoder(cfg: Mapping) -> torch.nn.Module:
         return registry.build("encoder", "qwen3_vl_vision", QwenVisionConfig(path=c.encoder_path, tiny=c.encoder_tiny))
     if c.encoder == "langsplat_proxy":
         return registry.build("encoder", "langsplat_proxy", LangSplatProxyConfig(d_f=c.d_f))
+    if c.encoder == "langsplat":
+        raise ValueError(
+            "stage.distill.encoder=langsplat: LangSplat's own codes come only with a dataset that ships them "
+            "(experiment=gaussiandwm_release); from images, distil encoder=langsplat_proxy"
+        )
     raise ValueError(f"stage.distill.encoder: unknown encoder '{c.encoder}' (daisy, qwen3_vl_vision, langsplat_proxy)")
 
 
@@ -59,6 +64,7 @@ def _render(weights: torch.Tensor, feats_NF: torch.Tensor, hw: tuple[int, int]) 
     per_scene=True,
     resources="gpu",
     setup=load_encoder,
+    needs={"cameras": "renders the features into every camera", "images": "encodes the camera images"},
 )
 def distill(ctx: StageContext) -> dict:
     cfg = DistillConfig(**ctx.cfg("stage.distill"))

@@ -28,6 +28,7 @@ from gdwm.stage import StageContext, stage
 from pipelines.data.reader import GSQADataset
 from pipelines.evaluate.config import FUTURE_POSES, EvaluateGenConfig, EvaluateQAConfig
 from pipelines.evaluate.suites import score_predictions, score_table, with_mapping
+from pipelines.generation.config import VIEW_TARGETS
 from pipelines.understanding.data import FrameStore, QASample, balanced_subset, row_samples
 from pipelines.understanding.infer import PREDICTION_SCHEMA, predict, write_predictions
 from pipelines.understanding.model import load_world_model
@@ -75,7 +76,8 @@ def answer_all(ctx: StageContext, model_dir: Path, samples: list[QASample], cfg:
 
 
 @stage("evaluate_qa", "1", config=["stage.evaluate_qa"], upstream=["lora", "distill"], resources="eval",
-       evaluation=True, samples="predictions.parquet", score=score_table, strata="task")  # fmt: skip
+       evaluation=True, samples="predictions.parquet", score=score_table, strata="task",
+       needs={"qa": "answers the held-out QA"})  # fmt: skip
 def evaluate_qa(ctx: StageContext) -> dict:
     cfg = EvaluateQAConfig(**ctx.cfg("stage.evaluate_qa"))
     model_dir = ctx.upstream["lora"].path
@@ -105,7 +107,7 @@ def evaluate_qa(ctx: StageContext) -> dict:
 
 
 @stage("evaluate_gen", "2", config=["stage.evaluate_gen"], upstream=["diffusion", "reconstruct", "lora", "distill"],
-       resources="eval", evaluation=True, seeded=True)  # fmt: skip
+       resources="eval", evaluation=True, seeded=True, needs=VIEW_TARGETS)  # fmt: skip
 def evaluate_gen(ctx: StageContext) -> dict:
     from model_zoo.diffusion.rgbd_dual import RGBDDual
     from pipelines.generation.frechet import build_extractor, build_video_extractor, label

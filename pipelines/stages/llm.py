@@ -23,7 +23,15 @@ from pipelines.understanding.data import instruction_pairs, load_samples, traini
 from pipelines.understanding.model import LLM_DIR
 
 
-@stage("llm", "1", config=["model.llm"], resources="cpu")
+def _needs(config: dict) -> dict[str, str]:
+    return (
+        {"qa": "the tiny LLM learns its tokenizer and answer formats from the training QA"}
+        if config["model.llm"]["tiny"]
+        else {}
+    )
+
+
+@stage("llm", "1", config=["model.llm"], resources="cpu", needs=_needs)
 def llm(ctx: StageContext) -> dict:
     cfg = LLMConfig(**ctx.cfg("model.llm"))
     metrics = {"built": float(cfg.tiny), "train_texts": 0, "instruction_pairs": 0}

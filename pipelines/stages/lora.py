@@ -10,13 +10,19 @@ from dataclasses import replace
 from gdwm.stage import StageContext, stage
 from pipelines.understanding.config import LoraStageConfig
 from pipelines.understanding.model import load_world_model
-from pipelines.understanding.stage_common import MODEL_CONFIG, finish, run_training, training_samples
+from pipelines.understanding.stage_common import (
+    MODEL_CONFIG,
+    finish,
+    run_training,
+    training_samples,
+    understanding_needs,
+)
 
 MODES = ("train", "zero_shot")
 
 
 @stage("lora", "2", config=[*MODEL_CONFIG, "stage.lora"], upstream=["tokenizer", "distill"], resources="train",
-       seeded=True)  # fmt: skip
+       seeded=True, needs=understanding_needs)  # fmt: skip
 def lora(ctx: StageContext) -> dict:
     cfg = LoraStageConfig(**ctx.cfg("stage.lora"))
     if cfg.mode not in MODES:

@@ -39,7 +39,15 @@ def to_ego(world: dict[str, np.ndarray], ego2world_44: np.ndarray) -> dict[str, 
     return transform_gaussians(world, np.linalg.inv(ego2world_44))
 
 
-@stage("reconstruct", "1", config=["stage.reconstruct"], per_scene=True, resources="gpu")
+NEEDS = {
+    "cameras": "projects the Gaussians into every camera",
+    "images": "fits the Gaussians to the camera images",
+    "lidar": "initialises the Gaussians from the aggregated LiDAR",
+    "ego_poses": "places every frame's LiDAR and cameras in the scene",
+}
+
+
+@stage("reconstruct", "1", config=["stage.reconstruct"], per_scene=True, resources="gpu", needs=NEEDS)
 def reconstruct(ctx: StageContext) -> dict:
     cfg = ReconstructConfig(**ctx.cfg("stage.reconstruct"))
     if cfg.iterations < 1:

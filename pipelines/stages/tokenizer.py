@@ -13,11 +13,18 @@ from gdwm.stage import StageContext, stage
 from model_zoo.llm.qwen3_vl import WorldLLM
 from pipelines.understanding.config import TokenizerStageConfig
 from pipelines.understanding.model import LLM_DIR, WORLD_FILE, build_world_model, load_world_model
-from pipelines.understanding.stage_common import MODEL_CONFIG, components, finish, run_training, training_samples
+from pipelines.understanding.stage_common import (
+    MODEL_CONFIG,
+    components,
+    finish,
+    run_training,
+    training_samples,
+    understanding_needs,
+)
 
 
 @stage("tokenizer", "2", config=[*MODEL_CONFIG, "stage.tokenizer"], upstream=["llm", "distill"], resources="train",
-       seeded=True)  # fmt: skip
+       seeded=True, needs=understanding_needs)  # fmt: skip
 def tokenizer(ctx: StageContext) -> dict:
     comp = components(ctx)
     cfg = TokenizerStageConfig(**ctx.cfg("stage.tokenizer"))

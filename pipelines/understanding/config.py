@@ -74,9 +74,9 @@ class LoraStageConfig(TrainConfig):
 
     mode: LoraMode = LoraMode.train
     """``train``, or ``zero_shot``: no training at all and no Gaussian tokens (the conference table's first row)."""
-    rank: int = 8
+    rank: int = 16
     """LoRA rank r."""
-    alpha: int = 16
+    alpha: int = 32
     """LoRA alpha (scaling alpha / r)."""
     dropout: float = 0.05
     """LoRA dropout."""

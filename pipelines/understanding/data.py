@@ -214,6 +214,10 @@ class FrameStore:
         return torch.from_numpy(route_path(np.asarray(self._routes[scene]), known[frame], cfg.route_ahead_m))
 
     def images(self, sample: QASample) -> list[np.ndarray]:
+        """The sample's camera views; none on a dataset without images (the GaussianDWM release): the LLM then reads
+        the instruction and the world tokens only (rows that need images are refused before launch)."""
+        if "images" not in self.ds.meta.get("tables", ["images"]):  # datasets built before tables were recorded
+            return []
         frame = self.ds.scene(sample.scene).frame(sample.frame)
         return [frame.image(cam, self.weather) for cam in sample.views]
 
@@ -227,9 +231,3 @@ def instruction_pairs(samples: Sequence[QASample]) -> list[tuple[str, str]]:
     """(instruction, answer) of the training split: the tiny flavor's warm-up with
     ``model.llm.pretrain_on=instructions`` (text only: never an image, a Gaussian or a val sample)."""
     return [(s.instruction, s.answer) for s in samples]
-
-
-def read_json(path: Path) -> dict:
-    if not path.is_file():
-        raise DataError(f"missing file {path}")
-    return json.loads(path.read_text())

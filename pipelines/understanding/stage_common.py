@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Mapping
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 from gdwm.stage import StageContext
 from pipelines.data.reader import GSQADataset
@@ -19,6 +21,22 @@ log = logging.getLogger(__name__)
 
 MODEL_KEYS = ("world", "selector", "projection", "fine_adapter", "alignment", "llm")
 MODEL_CONFIG = [f"model.{k}" for k in MODEL_KEYS]
+
+
+def understanding_needs(config: Mapping[str, Any]) -> dict[str, str]:
+    """Dataset tables the tokenizer and lora stages read with this model config (``gdwm.stage.stage(needs=...)``):
+    a row whose variant needs what a dataset lacks (the release has no images) is refused before launch."""
+    world, selector, alignment = config["model.world"], config["model.selector"], config["model.alignment"]
+    needs = {"qa": "trains on the training split's QA"}
+    if not world["gaussian_tokens"]:
+        needs["images"] = "an image-only row reads the scene from the camera images"
+    if alignment["name"] != "none":
+        needs["images"] = f"L_KL aligns the world tokens to the image tokens (model.alignment={alignment['name']})"
+    if world["gaussian_tokens"] and selector["name"] == "driving_aware":
+        needs["ego_poses"] = "the driving-aware selector scores the Gaussians along the ego path"
+        if str(selector.get("path")) in ("route", "PathSource.route"):
+            needs["routes"] = "model.selector.path=route follows the planned route"
+    return needs
 
 
 def components(ctx: StageContext) -> Components:

@@ -11,8 +11,17 @@ Layout under the cache root (any ``pyarrow.fs`` URI, or a plain local path)::
 
 Written here because no maintained library publishes verified directories atomically through ``pyarrow.fs``.
 Object stores (S3, GCS, Azure) cannot rename directories, so there (and on any filesystem not known to rename
-atomically) files are uploaded in place and the manifest, one atomic PUT, is what makes an entry visible; a
-concurrent writer's interleaved bytes fail verification and are recomputed.
+atomically) files are uploaded in place and the manifest, one atomic PUT, is what makes an entry visible: a reader
+never sees an entry whose manifest is missing, objects an interrupted publish left are deleted by the next publish of
+the key (or by ``gdwm cache gc`` once a day old), and a concurrent writer's interleaved bytes fail verification and
+are recomputed.
+
+S3 (``s3://bucket/prefix``, through pyarrow's ``S3FileSystem``): credentials come from the environment
+(``AWS_ACCESS_KEY_ID``, ``AWS_SECRET_ACCESS_KEY``, ``AWS_SESSION_TOKEN``) or the AWS SDK's other sources (``~/.aws``
+files, an instance or pod role), never from the URI: one carrying them (``user:secret@``, ``access_key=``,
+``secret_key=``, ``session_token=``) is refused. An S3-compatible endpoint (MinIO, moto) is ``AWS_ENDPOINT_URL``
+(``http://host:port``) or the URI's query, ``s3://bucket/prefix?endpoint_override=host:port&scheme=http`` (quote it
+in a Hydra override: ``'cache.uri="s3://..."'``); the query wins over the environment.
 """
 
 from __future__ import annotations
@@ -26,6 +35,7 @@ import os
 import re
 import shutil
 import time
+import urllib.parse
 import uuid
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
@@ -42,6 +52,14 @@ CHUNK = 1 << 20
 USED_DIR = ".used"
 # pyarrow filesystems whose move() is an atomic directory rename that fails on a non-empty destination.
 RENAMES_DIRS = frozenset({"local", "mock"})
+# pyarrow filesystems without directories: a write needs no parent created first (each create_dir is a PUT there).
+OBJECT_STORES = frozenset({"s3", "gcs", "abfs"})
+_URI_SECRETS = ("access_key", "secret_key", "session_token")
+_AWS_ERROR_RE = re.compile(r"AWS Error (\w+) during (\w+) operation")
+_AWS_AUTH_ERRORS = frozenset(
+    {"ACCESS_DENIED", "INVALID_ACCESS_KEY_ID", "SIGNATURE_DOES_NOT_MATCH", "EXPIRED_TOKEN", "INVALID_CLIENT_TOKEN_ID",
+     "MISSING_AUTHENTICATION_TOKEN", "UNRECOGNIZED_CLIENT"}
+)  # fmt: skip
 _STAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 _KEY_RE = re.compile(r"[0-9a-f]{64}")
 _ABSENT = pafs.FileType.NotFound
@@ -179,19 +197,46 @@ def _scan(stage: str, key: str, src: Path) -> list[tuple[str, Path]]:
     return sorted(out)
 
 
+def _checked_uri(uri: str) -> str:
+    """``uri`` unchanged; a ``CacheError`` when it carries credentials (the message shows it without them)."""
+    parts = urllib.parse.urlsplit(uri)
+    given = {k.lower() for k, _ in urllib.parse.parse_qsl(parts.query, keep_blank_values=True)}
+    named = [f"{k}=" for k in _URI_SECRETS if k in given]
+    if "@" in parts.netloc:
+        named.insert(0, "user:secret@")
+    if named:
+        shown = f"{parts.scheme}://{parts.netloc.rpartition('@')[2]}{parts.path}"
+        raise CacheError(
+            f"cache.uri {shown}: credentials in the URI ({', '.join(named)}) are refused; set AWS_ACCESS_KEY_ID / "
+            "AWS_SECRET_ACCESS_KEY (and AWS_SESSION_TOKEN) in the environment"
+        )
+    return uri
+
+
 class Cache:
     """Stage outputs under a ``pyarrow.fs`` root; see the module docstring for the layout."""
 
     def __init__(self, uri: str | os.PathLike):
-        uri = str(uri)
+        self.uri = uri = str(uri)
+        """As given (never with credentials: those are refused); what errors name."""
         if "://" in uri:
-            self.fs, root = pafs.FileSystem.from_uri(uri)
+            try:
+                self.fs, root = pafs.FileSystem.from_uri(_checked_uri(uri))
+            except (OSError, pa.ArrowException) as e:  # an unknown scheme or query key, an unreachable region lookup
+                raise CacheError(f"cache {uri}: {_first_line(e)}") from None
             self._scheme = uri.split("://", 1)[0] + "://"
+            if isinstance(self.fs, pafs.S3FileSystem):
+                # Delayed open: a small object is one PutObject instead of a 3-request multipart upload (what the URI
+                # cannot ask for); its errors surface at close, which every write here reaches. The options are
+                # those pyarrow pickles the filesystem with.
+                options = self.fs.__reduce__()[1][0]
+                self.fs = pafs.S3FileSystem(**{**options, "allow_delayed_open": True})
         else:
             self.fs, root, self._scheme = pafs.LocalFileSystem(), os.path.abspath(uri), ""
         self.root = root.rstrip("/")
         self.local = isinstance(self.fs, pafs.LocalFileSystem)
         self.atomic_dirs = self.fs.type_name in RENAMES_DIRS
+        self._dirless = self.fs.type_name in OBJECT_STORES
         self.last_invalid: list[tuple[str, str, str]] = []
         """``(stage, key, reason)`` of every bad entry the latest ``lookup`` found and moved aside."""
 
@@ -201,6 +246,20 @@ class Cache:
         if not _KEY_RE.fullmatch(key):
             raise ValueError(f"stage {stage}: cache key {key!r} is not a sha256 hex digest")
         return f"{self.root}/{stage}/{key[:2]}/{key}"
+
+    def _store_error(self, e: OSError, where: str) -> CacheError:
+        """``e`` as one line after ``where`` (pyarrow's messages name no URI, and on S3 bury the cause): S3's error
+        code and operation with the bucket; an authentication failure points at the credentials' variables."""
+        m = _AWS_ERROR_RE.search(str(e))
+        if m is None:
+            return CacheError(f"{where}: {_first_line(e)}")
+        bucket = self.root.split("/", 1)[0]
+        if m[1] in _AWS_AUTH_ERRORS:
+            return CacheError(
+                f"{where}: bucket {bucket}: access denied ({m[1]} during {m[2]}); check the credentials in "
+                "AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY / AWS_SESSION_TOKEN"
+            )
+        return CacheError(f"{where}: bucket {bucket}: {m[1]} during {m[2]} ({_first_line(e)})")
 
     def entry_uri(self, stage: str, key: str) -> str:
         """``<root>/<stage>/<key[:2]>/<key>`` in the scheme the cache was opened with."""
@@ -263,16 +322,20 @@ class Cache:
         plan's lookups don't)."""
         self.last_invalid = []
         d = self._dir(stage, key)
-        m, bad = self._load(stage, key, d)
-        if m is not None and verify:
-            bad = self._verify(m, d)
-        if bad is None:
-            if m is not None and use:
-                self.touch(stage, key)
-            return m
-        self.last_invalid.append((stage, key, bad))
-        log.warning("cache %s/%s: %s; moving the entry aside to recompute (%s)", stage, key[:12], bad, self._scheme + d)
-        self._discard(d, key)
+        try:
+            m, bad = self._load(stage, key, d)
+            if m is not None and verify:
+                bad = self._verify(m, d)
+            if bad is None:
+                if m is not None and use:
+                    self.touch(stage, key)
+                return m
+            self.last_invalid.append((stage, key, bad))
+            log.warning("cache %s/%s: %s; moving the entry aside to recompute (%s)", stage, key[:12], bad,
+                        self._scheme + d)  # fmt: skip
+            self._discard(d, key)
+        except OSError as e:
+            raise self._store_error(e, f"stage {stage} key {key[:12]}: lookup in cache {self.uri}") from None
         return None
 
     def used_marker(self, stage: str, key: str) -> str:
@@ -299,7 +362,8 @@ class Cache:
             f.write(m.to_json().encode())
 
     def _upload(self, src: Path, dst: str) -> tuple[str, int]:
-        self.fs.create_dir(dst.rsplit("/", 1)[0], recursive=True)
+        if not self._dirless:
+            self.fs.create_dir(dst.rsplit("/", 1)[0], recursive=True)
         with open(src, "rb") as fin, self.fs.open_output_stream(dst) as fout:
             return _sha256(fin, fout)
 
@@ -342,7 +406,7 @@ class Cache:
             return self._publish(stage, key, src_dir, d, config, upstream, data_fingerprint, version, scene, run_id,
                                  extra, code, base, replace)  # fmt: skip
         except OSError as e:  # pyarrow's messages name no path
-            raise CacheError(f"stage {stage} key {key[:12]}: could not write {self._scheme + d}: {e}") from e
+            raise self._store_error(e, f"stage {stage} key {key[:12]}: could not write {self._scheme + d}") from e
 
     def _publish(self, stage, key, src_dir, d, config, upstream, data_fingerprint, version, scene, run_id, extra,
                  code, base, replace) -> Manifest:  # fmt: skip
@@ -356,7 +420,12 @@ class Cache:
             return theirs
         parent = d.rsplit("/", 1)[0]
         work = f"{parent}/.tmp-{key[:12]}-{uuid.uuid4().hex}" if self.atomic_dirs else d
-        self.fs.create_dir(work, recursive=True)
+        if not self.atomic_dirs:
+            # objects an interrupted publish left (no manifest): one the new output lacks would fail its verification
+            self.fs.delete_dir_contents(d, missing_dir_ok=True)
+        if not self._dirless:
+            self.fs.create_dir(work, recursive=True)
+        committed = False
         try:
             entries = tuple(FileEntry(rel, *self._upload(src, f"{work}/{rel}")) for rel, src in files)
             cfg, ext = json.loads(canonical_json(config)), json.loads(canonical_json(extra or {}))
@@ -365,6 +434,7 @@ class Cache:
                 json.loads(canonical_json(code)) if code is not None else None, base,
             )  # fmt: skip
             self._write_manifest(work, m)  # last: only now is the entry complete
+            committed = True
             if not self.atomic_dirs:
                 self._index_base(m)
                 return m
@@ -375,6 +445,12 @@ class Cache:
                     self._index_base(m)
                     return m
             raise CacheError(f"stage {stage} key {key[:12]}: {self._scheme + d}: still contended after 3 attempts")
+        except BaseException:
+            if not self.atomic_dirs and not committed:
+                # best effort (the store may be what failed): unremoved objects stay invisible without a manifest
+                with contextlib.suppress(OSError):
+                    self._discard(d, key)
+            raise
         finally:
             if self.atomic_dirs:
                 with contextlib.suppress(FileNotFoundError):
@@ -390,7 +466,8 @@ class Cache:
             return
         with contextlib.suppress(OSError):
             d = self._base_dir(m.stage, m.base)
-            self.fs.create_dir(d, recursive=True)
+            if not self._dirless:
+                self.fs.create_dir(d, recursive=True)
             with self.fs.open_output_stream(f"{d}/{m.key}") as f:
                 f.write(b"")
 
@@ -398,11 +475,17 @@ class Cache:
         """The newest complete entry of the code-free key ``base``: any code's (an entry written before code was part
         of the key has key == base). Index files of entries gone (gc, invalidate) are dropped."""
         d = self._base_dir(stage, base)
-        infos = self.fs.get_file_info(pafs.FileSelector(d, allow_not_found=True))
+        try:
+            infos = self.fs.get_file_info(pafs.FileSelector(d, allow_not_found=True))
+        except OSError as e:
+            raise self._store_error(e, f"stage {stage} base {base[:12]}: lookup in cache {self.uri}") from None
         keys = {i.base_name for i in infos if _KEY_RE.fullmatch(i.base_name)} | {base}
         found = []
         for key in keys:
-            m, _ = self._load(stage, key, self._dir(stage, key))
+            try:
+                m, _ = self._load(stage, key, self._dir(stage, key))
+            except OSError as e:
+                raise self._store_error(e, f"stage {stage} key {key[:12]}: lookup in cache {self.uri}") from None
             if m is not None:
                 found.append(m)
             elif key != base:
@@ -427,12 +510,18 @@ class Cache:
             tmp.mkdir(parents=True)
             for fe in m.files:
                 (tmp / fe.path).parent.mkdir(parents=True, exist_ok=True)
-                with self.fs.open_input_stream(f"{d}/{fe.path}") as fin, open(tmp / fe.path, "wb") as fout:
-                    if (digest := _sha256(fin, fout)[0]) != fe.sha256:
-                        raise CacheError(
-                            f"stage {m.stage} key {m.key[:12]}: {fe.path}: downloaded sha256 "
-                            f"{digest[:12]} != {fe.sha256[:12]} in the manifest"
-                        )
+                try:
+                    with self.fs.open_input_stream(f"{d}/{fe.path}") as fin, open(tmp / fe.path, "wb") as fout:
+                        digest = _sha256(fin, fout)[0]
+                except OSError as e:
+                    raise self._store_error(
+                        e, f"stage {m.stage} key {m.key[:12]}: {fe.path}: download from cache {self.uri}"
+                    ) from None
+                if digest != fe.sha256:
+                    raise CacheError(
+                        f"stage {m.stage} key {m.key[:12]}: {fe.path}: downloaded sha256 "
+                        f"{digest[:12]} != {fe.sha256[:12]} in the manifest"
+                    )
             (tmp / MANIFEST).write_text(m.to_json())
             if dest.exists():  # a copy of an older publish of this key
                 stale = dest.parent / f".trash-{m.key[:12]}-{uuid.uuid4().hex}"
@@ -453,19 +542,31 @@ class Cache:
 
     def entries(self, stage: str | None = None) -> list[Manifest]:
         """Every complete manifest (not verified), of one stage or all, ordered by stage then creation time."""
-        stages = [stage] if stage else [i.base_name for i in self._ls(self.root)]
         out = []
-        for s in stages:
-            for shard in self._ls(f"{self.root}/{s}"):
-                for e in self._ls(shard.path):
-                    if (m := self._load(s, e.base_name, e.path)[0]) is not None:
-                        out.append(m)
+        try:
+            stages = [stage] if stage else [i.base_name for i in self._ls(self.root)]
+            for s in stages:
+                for shard in self._ls(f"{self.root}/{s}"):
+                    for e in self._ls(shard.path):
+                        if (m := self._load(s, e.base_name, e.path)[0]) is not None:
+                            out.append(m)
+        except OSError as e:
+            raise self._store_error(
+                e, f"cache {self.uri}: listing the entries" + (f" of stage {stage}" if stage else "")
+            ) from None
         return sorted(out, key=lambda m: (m.stage, m.created_at, m.key))
 
     def invalidate(self, stage: str, key: str) -> bool:
         """Remove an entry; False when there was none."""
         d = self._dir(stage, key)
-        if self.fs.get_file_info(d).type == _ABSENT:
-            return False
-        self._discard(d, key)
+        try:
+            if self.fs.get_file_info(d).type == _ABSENT:
+                return False
+            self._discard(d, key)
+        except OSError as e:
+            raise self._store_error(e, f"stage {stage} key {key[:12]}: invalidate in cache {self.uri}") from None
         return True
+
+
+def _first_line(e: BaseException) -> str:
+    return (str(e).strip().splitlines() or [type(e).__name__])[0]

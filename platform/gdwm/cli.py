@@ -22,14 +22,10 @@ from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
-from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config, sqlite_path
-from gdwm.errors import one_line
+from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config, sqlite_path, ui_url
+from gdwm.errors import CommandError, one_line
 from gdwm.redact import redact, redact_config
 from gdwm.term import console, err_console, print_dataset_summary
-
-
-class CommandError(Exception):
-    """A command that failed at run time; printed without a traceback, exit 1."""
 
 
 @dataclass
@@ -48,6 +44,18 @@ def _build_dataset(cfg: DictConfig, _args: list[str]) -> int:
     from gdwm.datasets import build_dataset
 
     build_dataset(cfg, source=cfg.source)
+    return 0
+
+
+def _export_gaussiandwm(cfg: DictConfig, _args: list[str]) -> int:
+    if not cfg.args.out:
+        err_console.print("gdwm data export-gaussiandwm: args.out=DIR is required (the folder to write)", markup=False)
+        return 2
+    # Named by path, as data builders are: gdwm imports no pipelines module.
+    export = get_method("pipelines.data.gaussiandwm_export.export")
+    summary = export(cfg.data.root, cfg.args.out, cfg.args.gaussians, overwrite=cfg.overwrite)
+    for line in summary.lines():
+        console.print(line, markup=False, soft_wrap=True)
     return 0
 
 
@@ -157,11 +165,6 @@ def _compare(cfg: DictConfig, _args: list[str]) -> int:
     return compare(cfg)
 
 
-def ui_url(cfg: DictConfig) -> str:
-    """Where the MLflow UI answers (``ui.url``, else ``http://<ui.host>:<ui.port>``); report links point there."""
-    return cfg.ui.url or f"http://{cfg.ui.host}:{cfg.ui.port}"
-
-
 def _ui(cfg: DictConfig, _args: list[str]) -> int:
     """``mlflow server`` on the configured store in the foreground; Ctrl-C (or SIGTERM) stops it, exit 0."""
     import subprocess
@@ -232,6 +235,12 @@ COMMANDS: dict[str, dict[str, Command]] = {
         "import-gaussiandwm": Command(
             _build_dataset, "import the public GaussianDWM release from source=DIR", ["data=gaussiandwm_release"]
         ),
+        "export-gaussiandwm": Command(
+            _export_gaussiandwm,
+            "write the dataset selected by data=... in the GaussianDWM release's format to args.out=DIR "
+            "(args.gaussians=DIR: per-frame Gaussians of a dataset without them, <scene_id>/gaussians/<frame>.arrow)",
+            ["+args.out=null", "+args.gaussians=null"],
+        ),
         "convert-nuscenes": Command(
             _build_dataset, "convert nuScenes v1.0 tables on disk at source=DIR", ["data=nuscenes"]
         ),
@@ -255,8 +264,10 @@ COMMANDS: dict[str, dict[str, Command]] = {
         "": Command(
             _sweep,
             "run an ablation table: sweep=NAME (conf/sweep/), overrides for every trial, seeds=[0,1,2] for a trial "
-            "per seed; shared stages run once; --dry-run prints trials x stages (cached / shared / to run)",
+            "per seed; shared stages run once; --dry-run prints trials x stages (cached / shared / to run) and the "
+            "capacity plan on the cluster (--durations=FILE: measured seconds per task, JSON stage -> seconds)",
             flags=("--dry-run",),
+            options=("--durations",),
         ),
     },
     "regress": {

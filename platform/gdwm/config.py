@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from functools import cache
@@ -24,6 +25,9 @@ from hydra.core.config_store import ConfigStore
 from hydra.errors import HydraException, MissingConfigException
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import InterpolationResolutionError, MissingMandatoryValue, OmegaConfBaseException
+
+from gdwm.compare.layout import Direction
+from gdwm.simcluster import SimConfig
 
 PLUGIN_GROUP = "gdwm.plugins"
 MAIN_GROUPS = ("experiment", "data", "pipeline", "cluster", "tracking", "sweep", "benchmark", "compare")
@@ -46,21 +50,43 @@ class StageResources:
 
 
 @dataclass
+class NodeShape:
+    """A kind of node of a cluster: what Ray can schedule on each (a head with ``num-cpus: 0`` is not one)."""
+
+    num_cpus: float = 1.0
+    """CPUs Ray schedules on the node."""
+    num_gpus: float = 0.0
+    """GPUs of the node."""
+    count: int = 1
+    """Nodes of this shape."""
+
+
+@dataclass
 class ClusterConfig:
     """Where Ray runs and what each stage resource class asks for."""
 
     name: str = "local"
     """Cluster profile name."""
     address: str | None = None
-    """Ray address (``auto`` or ``ray://...``); null starts a local Ray with ``num_cpus``."""
+    """Ray address (``auto``, ``HOST:PORT`` or ``ray://...``); null starts a local Ray with ``num_cpus`` (or the
+    ``sim`` cluster)."""
+    connect_timeout_s: float = 10.0
+    """How long ``address`` may take to answer before the run gives up with one line naming it (exit 1)."""
     num_cpus: int | None = 2
     """CPUs of the local Ray (ignored when ``address`` is set)."""
     num_gpus: int = 0
     """GPUs of the local Ray (ignored when ``address`` is set)."""
+    sim: SimConfig | None = None
+    """A local multi-node Ray cluster gdwm starts and stops itself (``cluster=sim``, see ``gdwm.simcluster``);
+    null = none. ``num_cpus``/``num_gpus`` are ignored then."""
     resources: dict[str, StageResources] = field(
         default_factory=lambda: {k: StageResources() for k in ("cpu", "gpu", "train", "eval")}
     )
     """Per resource class: what a stage of that class requests."""
+    nodes: list[NodeShape] = field(default_factory=list)
+    """The nodes tasks and actors run on, for a cluster not connected yet (a live one reports its own through
+    ``ray.nodes()``); empty with ``address: null`` = one node of ``num_cpus`` and ``num_gpus``. Every launch checks
+    each stage's resource shape against them (``gdwm.capacity``)."""
 
 
 @dataclass
@@ -233,6 +259,9 @@ class SweepConfig:
     """Overrides of every trial (the command line's come after them)."""
     rows: list[SweepRow] = field(default_factory=list)
     """Explicit rows; none = one row of the base config."""
+    only: list[str] = field(default_factory=list)
+    """Labels of the rows to run (empty = every row), e.g. the rows a dataset can feed:
+    ``"sweep.only=['Voxel Top-K + Similarity']"``."""
     grid: dict[str, list[str]] = field(default_factory=dict)
     """Override key -> values; their cartesian product is crossed with every row."""
     baseline: str | None = None
@@ -240,6 +269,73 @@ class SweepConfig:
     seeds: list[int] | None = None
     """Seeds of every row: one trial per (row, grid point, seed); ``seeds=[...]`` on the command line overrides
     them. null = ``[seed]``."""
+
+
+# ---- regression suites (`gdwm regress`, group benchmark/) -----------------------------------------------------
+
+
+class CheckTest(StrEnum):
+    none = "none"
+    bootstrap = "bootstrap"
+
+
+@dataclass
+class MetricCheck:
+    """One watched metric."""
+
+    name: str = MISSING
+    """Metric name as logged (``nuinteract/avg``, ``perf/select/...``)."""
+    direction: Direction = Direction.higher
+    """Which way is better."""
+    tolerance: Any = 0.0
+    """Allowed worsening before it is a regression: an amount (``1.0``), or ``{sigma: K}``: K standard deviations of
+    the difference of the two seed means, from the baseline's spread ``s`` over its seeds,
+    ``K * s * sqrt(1/n_baseline + 1/n_now)`` (the benchmark and its baseline need >= 2 seeds)."""
+    relative: bool = False
+    """A numeric ``tolerance`` is a fraction of the baseline value instead of an absolute amount."""
+    test: CheckTest = CheckTest.none
+    """``bootstrap``: a worsening beyond the tolerance counts only when a paired bootstrap over the held-out samples
+    (baseline vs now, combined over seeds) finds it significant at ``alpha`` (needs per-sample predictions)."""
+
+    def __post_init__(self) -> None:
+        t = self.tolerance
+        if isinstance(t, Mapping):
+            if set(t) != {"sigma"} or isinstance(t["sigma"], bool) or not isinstance(t["sigma"], int | float):
+                raise ValueError(f"metric '{self.name}': tolerance must be a number or {{sigma: K}}, got {dict(t)}")
+            if t["sigma"] < 0 or self.relative:
+                raise ValueError(f"metric '{self.name}': tolerance {{sigma: K}} needs K >= 0 and relative: false")
+            self.tolerance = {"sigma": float(t["sigma"])}
+        elif isinstance(t, bool) or not isinstance(t, int | float) or t < 0:
+            raise ValueError(f"metric '{self.name}': tolerance must be a number >= 0 or {{sigma: K}}, got {t!r}")
+
+    @property
+    def sigma(self) -> float | None:
+        return self.tolerance["sigma"] if isinstance(self.tolerance, dict) else None
+
+
+@dataclass
+class BenchmarkConfig:
+    """A regression suite (group ``benchmark/``)."""
+
+    name: str = MISSING
+    """Suite name: its runs are tagged ``gdwm.benchmark=<name>``."""
+    overrides: list[str] = field(default_factory=list)
+    """What to evaluate: overrides of ``gdwm run`` (an experiment, zoo references)."""
+    targets: list[str] = field(default_factory=lambda: ["evaluate_qa"])
+    """Stages whose evaluation metrics are compared."""
+    metrics: list[MetricCheck] = field(default_factory=list)
+    """The watched metrics."""
+    perf: list[str] = field(default_factory=list)
+    """Performance benchmarks from ``benchmarks/`` (run with ``--quick``); their figures become ``perf/...``."""
+    baseline: str | None = None
+    """A run id to compare against; default: the latest run of this suite tagged as baseline."""
+    seeds: list[int] | None = None
+    """Seeds of the evaluation, one trial each; the watched value is their mean (``seeds=[...]`` on the command
+    line overrides them). null = ``[seed]``."""
+    alpha: float = 0.05
+    """Significance level of ``test: bootstrap``."""
+    resamples: int = 1000
+    """Bootstrap resamples of ``test: bootstrap``."""
 
 
 def _register_platform(cs: ConfigStore) -> None:
@@ -253,8 +349,6 @@ def _register_platform(cs: ConfigStore) -> None:
 
     cs.store(group="schema/compare", name="layout", node=LayoutConfig)
     cs.store(group="schema/sweep", name="sweep", node=SweepConfig)
-    from gdwm.regress import BenchmarkConfig
-
     cs.store(group="schema/benchmark", name="benchmark", node=BenchmarkConfig)
     cs.store(group="schema/args", name="compare", node=CompareArgs)
     from gdwm.zoo.refs import ZooArgs
@@ -381,3 +475,8 @@ def explain(e: Exception) -> str:
     if full_key:
         return f"invalid value for '{full_key}': {head}."
     return " ".join(line.strip() for line in str(e).splitlines() if line.strip() and "search path" not in line)
+
+
+def ui_url(cfg: DictConfig) -> str:
+    """Where the MLflow UI answers (``ui.url``, else ``http://<ui.host>:<ui.port>``); report links point there."""
+    return cfg.ui.url or f"http://{cfg.ui.host}:{cfg.ui.port}"

@@ -8,6 +8,11 @@ from __future__ import annotations
 
 import re
 
+
+class CommandError(Exception):
+    """A command that failed at run time; printed without a traceback, exit 1."""
+
+
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 _WHERE = re.compile(r"ray::([\w.\-]+(?::[\w.]+\(\))?)")
 _ACTORS = {

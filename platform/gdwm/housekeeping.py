@@ -40,6 +40,8 @@ from gdwm.term import console, err_console
 
 log = logging.getLogger(__name__)
 
+BASES_DIR = ".bases"
+"""``<stage>/.bases/<base>/<key>``: the index ``cache.reuse=all`` looks up; its base-named dirs are no leftovers."""
 LEFTOVER_AGE_S = 86400.0
 """``.tmp-*``/``.trash-*`` dirs and incomplete entries untouched for this long are debris, not a publish in progress."""
 _MAX_COMBINATIONS = 256
@@ -227,7 +229,7 @@ def scan(cache: Cache, stage: str | None = None, now: float | None = None) -> Sc
                 if len(parts) == 2 and info.type == pafs.FileType.File:
                     markers[parts[1]] = (info.path, _mtime(info), info.size)
                 continue
-            if len(parts) < 2:
+            if parts[0] == BASES_DIR or len(parts) < 2:  # the code-free index is kept by Cache.lookup_base
                 continue
             item = items.setdefault(f"{parts[0]}/{parts[1]}", [0, None])
             if info.type == pafs.FileType.File:

@@ -208,6 +208,8 @@ def compose(
     Without ``overrides`` (a caller holding a composed config only), ``cfg`` is every trial's config, so its seed
     must be the only seed. Errors name ``where`` (and the row, with ``name_rows``)."""
     seen: dict[str, _Entries] = {}  # a cache's entries are read once per launch, whatever the number of trials
+    refused: dict[str, list[str]] = {}  # row -> what its stages need that the dataset lacks
+    lacks = ""
     for t in trials:
         here = f"{where} row '{t.label}'" if name_rows else where
         if overrides is None:
@@ -228,12 +230,64 @@ def compose(
             if not name_rows:  # gdwm run reports them as it always has: a pipeline error (2), a zoo error (1)
                 raise
             raise PlanError(f"{here}: {e}") from e
+        check_shapes(t.pipe, t.order, t.cfg, here if name_rows else None)
         meta = ensure_data(t.cfg, dry_run)
+        if lacking := missing_inputs(t.pipe, t.order, t.cfg, meta):
+            if not name_rows:
+                raise PlanError(f"{_lacks(t.cfg, meta)}:\n  " + "\n  ".join(lacking))
+            refused.setdefault(t.label, lacking)
+            lacks = lacks or _lacks(t.cfg, meta)
+            continue
         t.settings = env_settings(t.cfg, meta)
         t.pending_data = meta.get("pending")
         t.settings |= code_settings(t.cfg, t.pipe, t.order, here)
         entries = seen.setdefault(t.settings["cache_uri"], _Entries(Cache(t.settings["cache_uri"])))
         t.plan, t.keys = plan_keys(t.pipe, t.order, t.cfg, t.env(), entries)
+    if refused:
+        rows = "".join(f"\n  row '{label}': " + "\n    ".join(lines) for label, lines in refused.items())
+        runnable = list(dict.fromkeys(t.label for t in trials if t.label not in refused))
+        hint = f'\nrun the other rows alone with "sweep.only={runnable!r}"' if runnable else ""
+        raise PlanError(f"{where}: {lacks}:{rows}{hint}")
+
+
+def check_shapes(pipe: Pipeline, order: list[str], cfg: DictConfig, where: str | None) -> None:
+    """``PlanError`` (exit 2) when a stage of ``order`` asks for a resource shape no node of the cluster can host
+    (``gdwm.capacity``): Ray would leave it pending forever."""
+    from gdwm.capacity import cluster_nodes, shape_errors
+
+    resources = OmegaConf.to_container(cfg.cluster.resources, resolve=True)
+    stages = {n: pipe.stages[n].resources for n in order}
+    if errors := shape_errors(stages, resources, cluster_nodes(cfg.cluster), str(cfg.cluster.name)):
+        raise PlanError((f"{where}: " if where else "") + "\n  ".join(errors))
+
+
+def held_tables(cfg: DictConfig, meta: dict) -> list[str] | None:
+    """What the dataset holds (``dataset.json`` ``tables``; before a generated dataset exists, its option's
+    ``data.tables``); None when unknown (a dataset built before tables were recorded): nothing is checked."""
+    held = meta.get("tables")
+    if held is None and meta.get("fingerprint") == PENDING_DATA:
+        held = list(cfg.data.get("tables") or []) or None
+    return None if held is None else list(held)
+
+
+def missing_inputs(pipe: Pipeline, order: list[str], cfg: DictConfig, meta: dict) -> list[str]:
+    """One line per stage of ``order`` that needs, with this config, tables the dataset lacks, naming them and why
+    the stage needs each; empty when nothing is missing or the dataset's tables are unknown."""
+    held = held_tables(cfg, meta)
+    if held is None:
+        return []
+    out = []
+    for name in order:
+        sd = pipe.stages[name]
+        lacking = [f"'{t}' ({why})" for t, why in sorted(sd.needed(stage_config(sd, cfg)).items()) if t not in held]
+        if lacking:
+            out.append(f"stage '{name}' needs {', '.join(lacking)}")
+    return out
+
+
+def _lacks(cfg: DictConfig, meta: dict) -> str:
+    held = held_tables(cfg, meta) or []
+    return f"dataset '{cfg.data.name}' at {cfg.data.root} (tables: {', '.join(held) or 'none'}) lacks inputs"
 
 
 _WARNED: set[str] = set()

@@ -22,89 +22,19 @@ import math
 import re
 import sys
 import tempfile
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
-from enum import StrEnum
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
-from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
-from gdwm.config import ConfigError, conf_dir, load_config
+from gdwm.compare.layout import Direction
+from gdwm.config import BenchmarkConfig, CheckTest, ConfigError, MetricCheck, conf_dir, load_config
 from gdwm.term import console, err_console
 
 KIND = "regression"
 BASELINE_TAG = "gdwm.baseline"
-
-
-class Direction(StrEnum):
-    higher = "higher"
-    lower = "lower"
-
-
-class CheckTest(StrEnum):
-    none = "none"
-    bootstrap = "bootstrap"
-
-
-@dataclass
-class MetricCheck:
-    """One watched metric."""
-
-    name: str = MISSING
-    """Metric name as logged (``nuinteract/avg``, ``perf/select/...``)."""
-    direction: Direction = Direction.higher
-    """Which way is better."""
-    tolerance: Any = 0.0
-    """Allowed worsening before it is a regression: an amount (``1.0``), or ``{sigma: K}``: K standard deviations of
-    the difference of the two seed means, from the baseline's spread ``s`` over its seeds,
-    ``K * s * sqrt(1/n_baseline + 1/n_now)`` (the benchmark and its baseline need >= 2 seeds)."""
-    relative: bool = False
-    """A numeric ``tolerance`` is a fraction of the baseline value instead of an absolute amount."""
-    test: CheckTest = CheckTest.none
-    """``bootstrap``: a worsening beyond the tolerance counts only when a paired bootstrap over the held-out samples
-    (baseline vs now, combined over seeds) finds it significant at ``alpha`` (needs per-sample predictions)."""
-
-    def __post_init__(self) -> None:
-        t = self.tolerance
-        if isinstance(t, Mapping):
-            if set(t) != {"sigma"} or isinstance(t["sigma"], bool) or not isinstance(t["sigma"], int | float):
-                raise ValueError(f"metric '{self.name}': tolerance must be a number or {{sigma: K}}, got {dict(t)}")
-            if t["sigma"] < 0 or self.relative:
-                raise ValueError(f"metric '{self.name}': tolerance {{sigma: K}} needs K >= 0 and relative: false")
-            self.tolerance = {"sigma": float(t["sigma"])}
-        elif isinstance(t, bool) or not isinstance(t, int | float) or t < 0:
-            raise ValueError(f"metric '{self.name}': tolerance must be a number >= 0 or {{sigma: K}}, got {t!r}")
-
-    @property
-    def sigma(self) -> float | None:
-        return self.tolerance["sigma"] if isinstance(self.tolerance, dict) else None
-
-
-@dataclass
-class BenchmarkConfig:
-    """A regression suite (group ``benchmark/``)."""
-
-    name: str = MISSING
-    """Suite name: its runs are tagged ``gdwm.benchmark=<name>``."""
-    overrides: list[str] = field(default_factory=list)
-    """What to evaluate: overrides of ``gdwm run`` (an experiment, zoo references)."""
-    targets: list[str] = field(default_factory=lambda: ["evaluate_qa"])
-    """Stages whose evaluation metrics are compared."""
-    metrics: list[MetricCheck] = field(default_factory=list)
-    """The watched metrics."""
-    perf: list[str] = field(default_factory=list)
-    """Performance benchmarks from ``benchmarks/`` (run with ``--quick``); their figures become ``perf/...``."""
-    baseline: str | None = None
-    """A run id to compare against; default: the latest run of this suite tagged as baseline."""
-    seeds: list[int] | None = None
-    """Seeds of the evaluation, one trial each; the watched value is their mean (``seeds=[...]`` on the command
-    line overrides them). null = ``[seed]``."""
-    alpha: float = 0.05
-    """Significance level of ``test: bootstrap``."""
-    resamples: int = 1000
-    """Bootstrap resamples of ``test: bootstrap``."""
 
 
 class RegressError(Exception):

@@ -25,6 +25,7 @@ import json
 import math
 import os
 import signal
+import socket
 import statistics
 import sys
 import threading
@@ -34,6 +35,7 @@ from pathlib import Path
 
 import ray
 from omegaconf import DictConfig, OmegaConf
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 from rich.live import Live
 from rich.table import Table
 
@@ -65,6 +67,7 @@ from gdwm.plan import (
     resolve_seeds,
 )
 from gdwm.progress import ProgressActor, render
+from gdwm.simcluster import SimCluster, SimConfig
 from gdwm.term import console, err_console
 from gdwm.tracking import AliveExcept, RunGuard, call, open_tracking, process_owner
 from gdwm.zoo.registry import metric_tags
@@ -119,24 +122,58 @@ class LaunchSummary:
 
 
 # ---- Ray and tracking ------------------------------------------------------------------------------------------
-def init_ray(cfg: DictConfig) -> bool:
-    """Start (or join) Ray as the cluster config says; True if this call started it."""
+def init_ray(cfg: DictConfig) -> SimCluster | bool:
+    """Start (or join) Ray as the cluster config says: truthy if this call started it (the ``SimCluster`` it
+    started for ``cluster=sim``, to stop after ``ray.shutdown``)."""
     if ray.is_initialized():
         return False
     c = cfg.cluster
     kwargs = {"include_dashboard": False, "log_to_driver": cfg.run.worker_logs}
     env_vars = worker_env(cfg.run.deterministic)
+    started: SimCluster | bool = True
     if c.address:
+        check_address(str(c.address), float(c.get("connect_timeout_s", 10.0)))
         # A cluster's workers run the installed wheel (k8s/Dockerfile); the driver's paths mean nothing there.
         ray.init(address=c.address, runtime_env={"env_vars": env_vars}, **kwargs)
     else:
         # Local workers import the stage modules from wherever the driver does.
         env_vars["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
-        ray.init(num_cpus=c.num_cpus, num_gpus=c.num_gpus, runtime_env={"env_vars": env_vars}, **kwargs)
+        if c.get("sim") is not None:
+            started = SimCluster(SimConfig(**c.sim), Path(cfg.workdir).resolve() / "sim-cluster").start()
+            # Ray's own helpers that look for "the" cluster (Ray Train's placement group cleaner) must find this one
+            env_vars["RAY_ADDRESS"] = started.address
+            try:
+                ray.init(address=started.address, runtime_env={"env_vars": env_vars}, **kwargs)
+            except BaseException:
+                started.stop()
+                raise
+            console.print(started.describe(), markup=False)
+        else:
+            # address="local": a new Ray of its own, never a cluster some other process started on this machine
+            ray.init(
+                address="local", num_cpus=c.num_cpus, num_gpus=c.num_gpus, runtime_env={"env_vars": env_vars}, **kwargs
+            )
     if threading.current_thread() is threading.main_thread():
         # ray.init's own SIGTERM handler exits 1; exit 143 as a terminated process should (finally shuts Ray).
         signal.signal(signal.SIGTERM, _sigterm)
-    return True
+    return started
+
+
+def check_address(address: str, timeout_s: float) -> None:
+    """A RunError naming ``address`` unless its host and port accept a connection within ``timeout_s`` (ray.init
+    itself retries an address that does not answer for a minute and more); ``auto`` is Ray's to resolve."""
+    hostport = address.removeprefix("ray://").rsplit("/", 1)[0]
+    host, sep, port = hostport.rpartition(":")
+    if address == "auto" or not sep or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as e:
+        why = "no answer" if isinstance(e, TimeoutError) else e.strerror or type(e).__name__
+        raise RunError(
+            f"cluster.address={address}: no Ray cluster answers there ({why} within {timeout_s:g} s); "
+            "is the head up and the address right?"
+        ) from None
 
 
 _TERMINATED: list[int] = []
@@ -154,7 +191,11 @@ def driver_session(cfg: DictConfig) -> Iterator:
     left RUNNING are reconciled first. Whatever escapes (Ctrl-C, SIGTERM, an error) ends the runs this driver owns
     KILLED now, not at the next reconcile."""
     started = init_ray(cfg)
-    sink, close = open_tracking(cfg.tracking)
+    try:
+        sink, close = open_tracking(cfg.tracking)
+    except BaseException:
+        _stop_ray(started)
+        raise
     try:
         call(sink, "reconcile")
         yield sink
@@ -170,8 +211,16 @@ def driver_session(cfg: DictConfig) -> Iterator:
         raise
     finally:
         close()
-        if started:
-            ray.shutdown()
+        _stop_ray(started)
+
+
+def _stop_ray(started: SimCluster | bool) -> None:
+    if isinstance(started, SimCluster):
+        console.print(started.describe_placement(), markup=False)
+    if started:
+        ray.shutdown()
+    if isinstance(started, SimCluster):
+        started.stop()
 
 
 # ---- MLflow layout ---------------------------------------------------------------------------------------------
@@ -372,7 +421,8 @@ def execute(
     trial to ``on_trial``; returns how many stage executions ran (not cached)."""
     submitted: dict[tuple[str, str], ray.ObjectRef] = {}
     for t in trials:
-        env = t.env(sink, parent, progress, run_tags=dict(stage_tags or {}))
+        # the cluster profile a stage ran on: `gdwm sweep --dry-run` estimates durations from that cluster's runs
+        env = t.env(sink, parent, progress, run_tags={"gdwm.cluster": str(t.cfg.cluster.name), **(stage_tags or {})})
         refs: dict[str, ray.ObjectRef] = {}
         for name in t.order:
             sd = t.pipe.stages[name]
@@ -434,7 +484,9 @@ def launch(
     with _launch_lock(cfg, layout), driver_session(cfg) as sink:
         parent = layout.open(sink, cfg, rows, trials)
         summary.parent_run_id = parent
-        progress = ProgressActor.remote() if layout.sweep is None else None
+        # on the driver's node, as the tracking actor: a worker node lost mid-run must not take the board along
+        here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
+        progress = ProgressActor.options(scheduling_strategy=here).remote() if layout.sweep is None else None
 
         def on_trial(t: Trial, outcomes: dict[str, Outcome]) -> None:
             results[id(t)] = _finish_trial(sink, layout, t, outcomes)

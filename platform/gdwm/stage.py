@@ -57,6 +57,14 @@ class StageDef:
     libraries: tuple[str, ...] = ()
     """Distributions whose version enters the stage's code fingerprint besides those it imports from
     ``gdwm.fingerprint.NUMERIC_LIBRARIES`` (e.g. a renderer it loads by name)."""
+    needs: tuple[tuple[str, str], ...] | Callable[[Mapping[str, Any]], Mapping[str, str]] = ()
+    """Dataset tables it reads -> why (e.g. ``{"lidar": "initialises the Gaussians"}``), or a function of its config
+    subset (``stage_config``) returning them, for needs that depend on the variant. A launch whose dataset lacks one
+    (its ``dataset.json`` ``tables``) is refused before anything starts (``gdwm.plan.missing_inputs``)."""
+
+    def needed(self, config: Mapping[str, Any]) -> dict[str, str]:
+        """The tables this stage reads with ``config`` (its config subset), each with why."""
+        return dict(self.needs(config) if callable(self.needs) else self.needs)
 
     def __post_init__(self) -> None:
         if self.resources not in RESOURCE_CLASSES:
@@ -97,6 +105,7 @@ def stage(
     score: Callable[[Any, Any], Mapping[str, float]] | None = None,
     strata: str | None = None,
     libraries: Sequence[str] = (),
+    needs: Mapping[str, str] | Callable[[Mapping[str, Any]], Mapping[str, str]] | None = None,
 ) -> Callable[[Callable[[StageContext], Any]], StageDef]:
     """Declare a stage; the decorated name becomes its StageDef (point ``_target_`` at it).
 
@@ -105,7 +114,8 @@ def stage(
 
     def wrap(fn: Callable[[StageContext], Any]) -> StageDef:
         sd = StageDef(name, str(version), fn, tuple(config), tuple(upstream), per_scene, resources, setup, evaluation,
-                      seeded, samples, score, strata, tuple(libraries))  # fmt: skip
+                      seeded, samples, score, strata, tuple(libraries),
+                      needs if callable(needs) else tuple(sorted((needs or {}).items())))  # fmt: skip
         _REGISTRY[(fn.__module__, fn.__name__)] = sd
         return sd
 

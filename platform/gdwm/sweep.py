@@ -34,8 +34,9 @@ SweepError = PlanError
 
 
 def user_overrides(argv: list[str]) -> list[str]:
-    """The command line's overrides that apply to every trial (not the sweep choice, not flags)."""
-    return [a for a in argv if not a.startswith("--") and a.split("=", 1)[0].lstrip("+~") != "sweep"]
+    """The command line's overrides that apply to every trial (not the sweep choice or its keys, not flags)."""
+    keys = (a.split("=", 1)[0].lstrip("+~") for a in argv)
+    return [a for a, k in zip(argv, keys, strict=True) if not a.startswith("--") and k.split(".")[0] != "sweep"]
 
 
 def load_sweep(cfg: DictConfig) -> SweepConfig:
@@ -55,6 +56,11 @@ def plan_sweep(cfg: DictConfig, argv: list[str], dry_run: bool = False) -> tuple
     check_grid_seeds(sweep, given)
     check_seed_overrides(given, where, user_overrides(argv), "command-line override")
     check_seed_overrides(given, where, sweep.overrides, "sweep override")
+    if sweep.only:
+        labels = [r.label for r in sweep.rows]
+        if unknown := [x for x in sweep.only if x not in labels]:
+            raise SweepError(f"{where}: sweep.only names no row {unknown} (rows: {labels})")
+        sweep.rows = [r for r in sweep.rows if r.label in sweep.only]
     for row in sweep.rows:
         check_seed_overrides(given, f"{where} row '{row.label}'", row.overrides)
     rows = expand(sweep, seeds)
@@ -79,21 +85,89 @@ def check_distinct_rows(where: str, trials: list[Trial]) -> None:
 def run_sweep(cfg: DictConfig, argv: list[str], dry_run: bool = False) -> LaunchSummary:
     sweep, rows, trials = plan_sweep(cfg, argv, dry_run)
     if dry_run:
-        print_sweep_plan(sweep, trials, _durations(cfg))
+        runs = _stage_runs(cfg)
+        print_sweep_plan(sweep, trials, _durations(runs))
+        print_capacity_plan(cfg, trials, runs, durations_file(argv))
         return LaunchSummary(naive=sum(len(t.order) for t in trials))
     layout = Layout(sweep, f"sweep:{sweep.name}", trials[0].pipe.name)
     return launch(cfg, rows, trials, layout)
 
 
-def _durations(cfg: DictConfig) -> dict[str, float]:
-    """Median wall seconds of finished stage runs per stage in the store (the dry run's estimate); {} if none."""
+def _stage_runs(cfg: DictConfig) -> list[dict]:
+    """Finished stage runs of the store (their times and tags); [] when there is no store yet."""
     uri = cfg.tracking.uri
     if (db := sqlite_path(uri)) is not None and not Path(db).is_file():
-        return {}
+        return []
     from gdwm.tracking import TrackingBackend
 
     backend = TrackingBackend(uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
-    runs = backend.search_runs("tags.`gdwm.kind` = 'stage' and attributes.status = 'FINISHED'", 5000)
+    return backend.search_runs("tags.`gdwm.kind` = 'stage' and attributes.status = 'FINISHED'", 5000)
+
+
+def durations_file(argv: list[str]) -> Path | None:
+    """``--durations=FILE`` (JSON: stage -> wall seconds of one task, measured elsewhere)."""
+    given = [a.split("=", 1)[1] for a in argv if a.startswith("--durations=")]
+    return Path(given[-1]) if given else None
+
+
+def print_capacity_plan(cfg: DictConfig, trials: list[Trial], runs: list[dict], durations: Path | None) -> None:
+    """Per stage: resource shape, tasks (scenes or executions) to run, how many at once on the cluster, estimated
+    wall time and GPU-hours (``gdwm.capacity``), then the model the estimate rests on."""
+    import json
+
+    from gdwm.capacity import GPU_SPEEDUP, Duration, cluster_nodes, describe, plan_capacity, stage_durations
+
+    resources = OmegaConf.to_container(cfg.cluster.resources, resolve=True)
+    cluster, nodes = str(cfg.cluster.name), cluster_nodes(cfg.cluster)
+    stages: dict[str, tuple[str, bool, int]] = {}
+    todo: dict[str, set] = {}
+    for t in trials:
+        for name in t.order:
+            sd = t.pipe.stages[name]
+            rows = [r for r in t.plan if r.stage == name and r.status == "to run"]
+            todo.setdefault(name, set()).update((t.keys[name], r.scene) for r in rows)
+            stages[name] = (sd.resources, sd.per_scene, 0)
+    stages = {n: (c, ps, len(todo[n])) for n, (c, ps, _) in stages.items()}
+    asks_gpu = {n: float(resources.get(c, {}).get("num_gpus", 0)) > 0 for n, (c, _, _) in stages.items()}
+    if durations is not None:
+        try:
+            measured = {str(k): Duration(float(v), f"file {durations.name}") for k, v in
+                        json.loads(durations.read_text()).items()}  # fmt: skip
+        except (OSError, ValueError, AttributeError) as e:
+            raise SweepError(f"--durations={durations}: not a JSON object of stage -> seconds per task ({e})") from e
+    else:
+        measured = stage_durations(runs, cluster, asks_gpu)
+    plans = plan_capacity(stages, resources, nodes, measured)
+    table = Table(title=f"capacity plan on cluster '{cluster}' ({describe(nodes) or 'nodes unknown'})",
+                  header_style="bold")  # fmt: skip
+    for col in ("stage", "shape", "tasks", "at once", "est. wall", "GPU-h", "duration from"):
+        table.add_column(col, justify="left" if col in ("stage", "shape", "duration from") else "right")
+    for p in plans:
+        wall = "?" if p.seconds is None else f"{p.seconds:.0f} s" if p.seconds < 120 else f"{p.seconds / 60:.1f} min"
+        gpu_h = "?" if p.gpu_hours is None else f"{p.gpu_hours:.2f}"
+        table.add_row(p.stage, p.shape, str(p.tasks), str(p.at_once), wall, gpu_h, p.source)
+    console.print(table)
+    known = [p for p in plans if p.seconds is not None]
+    total = sum(p.seconds for p in known) / 3600
+    gpu_h = sum(p.gpu_hours for p in known)
+    unknown = [p.stage for p in plans if p.seconds is None]
+    console.print(
+        f"estimate: {total:.2f} h of wall time if the stages ran one after another (an upper bound: independent "
+        f"stages overlap), {gpu_h:.2f} GPU-hours" + (f"; no duration for {', '.join(unknown)}" if unknown else ""),
+        markup=False,
+    )
+    console.print(
+        f"model: a task's seconds are the median of earlier finished runs of the stage on '{cluster}' (tag "
+        "gdwm.cluster); without any, of runs on other clusters, per scene for per-scene stages, divided by "
+        f"{GPU_SPEEDUP:g} (gdwm.capacity.GPU_SPEEDUP, an assumption) where the stage asks for a GPU here; "
+        "--durations=FILE replaces both. Tasks run in waves of 'at once'; GPU-hours = tasks x seconds x workers x "
+        "GPUs per worker.",
+        markup=False,
+    )
+
+
+def _durations(runs: list[dict]) -> dict[str, float]:
+    """Median wall seconds of finished stage runs per stage in the store (the dry run's estimate); {} if none."""
     per: dict[str, list[float]] = {}
     for r in runs:
         if r["end_time"] and r["start_time"]:

@@ -32,6 +32,7 @@ import hashlib
 import json
 import logging
 import math
+import os
 import re
 import shutil
 import tempfile
@@ -42,11 +43,13 @@ from pathlib import Path
 from typing import Any
 
 import ray.train
+import ray.train.collective
 import torch
 from ray.train import Checkpoint, FailureConfig, RunConfig, ScalingConfig
-from ray.train.torch import TorchTrainer
+from ray.train.torch import TorchConfig, TorchTrainer
 
 from gdwm.determinism import stage_start
+from gdwm.simcluster import FAKE_GPUS_ENV
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +86,9 @@ class TrainSession:
     def restore(self) -> dict | None:
         """The newest verified state (tensors and plain values, loaded with weights_only=True); None: start at 0.
 
-        Only gdwm's own copies are read. A checkpoint that fails verification is skipped; rank 0 also deletes it
-        and warns (other ranks only skip it, so two ranks never race to delete the same directory).
+        Only gdwm's own copies are read. Rank 0 picks the newest that verifies (one that fails is deleted and
+        warned about) and every other rank loads the same one, so a group restarted after a lost worker or node
+        resumes at one step on every rank.
 
         Ray Train's own copy (``ray.train.get_checkpoint()``) is deliberately not a fallback: rank 0 writes gdwm's
         copy synchronously before Ray hears of the report, into the same storage tree as Ray's (``storage_path``
@@ -93,9 +97,12 @@ class TrainSession:
         hand back exactly the checkpoints gdwm discarded as corrupt, from another attempt, unverified.
         """
         rank0 = self.rank == 0
-        latest = _newest_verified(
-            self.local_ckpt_dir, self.key, discard=rank0, tracker=self.tracker if rank0 else None
-        )[0]
+        latest = _newest_verified(self.local_ckpt_dir, self.key, tracker=self.tracker)[0] if rank0 else None
+        if self.world_size > 1:
+            # Every rank resumes from rank 0's choice: a rank that looked for itself could find the checkpoint rank 0
+            # writes a moment later, start a step ahead, and leave the group waiting forever in ray.train.report.
+            chosen = ray.train.collective.broadcast_from_rank_zero(str(latest) if latest is not None else None)
+            latest = Path(chosen) if chosen is not None else None
         if latest is None:
             return None
         return torch.load(latest / STATE_FILE, map_location="cpu", weights_only=True)
@@ -327,10 +334,15 @@ def fit(ctx, loop: Callable[[TrainSession], None], loop_config: dict) -> TrainRe
     )
     run = RunConfig(
         name=f"train-{ctx.key[:16]}",
+        # under the workdir, which every node sees (the PVC on k8s): a group restarted on another node, or a
+        # stage task Ray retried there after a node loss, resumes from the last checkpoint any node wrote
         storage_path=str(ctx.checkpoint_dir),
         failure_config=FailureConfig(max_failures=int(settings.get("max_failures", 2))),
     )
-    trainer = TorchTrainer(_worker_entry, train_loop_config=payload, scaling_config=scaling, run_config=run)
+    # GPUs that are Ray resources only (cluster=sim without CUDA): the group talks over gloo, not NCCL
+    torch_config = TorchConfig(backend="gloo") if gpus and os.environ.get(FAKE_GPUS_ENV) else None
+    trainer = TorchTrainer(_worker_entry, train_loop_config=payload, scaling_config=scaling, run_config=run,
+                           torch_config=torch_config)  # fmt: skip
     result = trainer.fit()
     state = _final_state(payload["local_ckpt_dir"], ctx.key, ctx.tracker)
     return TrainResult(state, dict(result.metrics or {}))

@@ -14,7 +14,7 @@ def test_help_lists_commands_and_groups():
     for text in ("data synth", "data import-gaussiandwm", "data convert-nuscenes", "data info", "config show"):
         assert text in r.stdout
     assert "data       gaussiandwm_release, nuscenes, synthetic_mini" in r.stdout
-    assert "cluster    a100x16, local" in r.stdout
+    assert "cluster    a100x16, local, sim" in r.stdout
     assert "experiment demo, gaussiandwm_pp" in r.stdout
     assert "sweep      conference_ablation, dual_condition, journal_ablation" in r.stdout
 

@@ -27,6 +27,7 @@ def test_root_config_composes_with_defaults(tmp_path):
     cfg = load_config([f"workdir={tmp_path}"])
     assert cfg.pipeline.name == "gaussiandwm_pp"
     assert list(cfg.pipeline.stages) == [
+        "llm",
         "reconstruct",
         "distill",
         "tokenizer",
@@ -67,7 +68,7 @@ def _holds(node, value) -> bool:
         return True
     if isinstance(value, dict):
         return all(k in node and _holds(node[k], v) for k, v in value.items())
-    if isinstance(value, list) and any(isinstance(v, dict) for v in value):
+    if isinstance(value, list) and any(isinstance(v, dict) or (isinstance(v, str) and "${" in v) for v in value):
         return len(node) == len(value) and all(_holds(n, v) for n, v in zip(node, value, strict=True))
     return node == value
 
@@ -92,7 +93,7 @@ def test_server_tracking_takes_uri_from_environment(monkeypatch, tmp_path):
             "config group 'data' has no option 'synthetic_maxi'; allowed values: "
             "gaussiandwm_release, nuscenes, synthetic_mini.",
         ),
-        ("cluster=a100x61", "config group 'cluster' has no option 'a100x61'; allowed values: a100x16, local."),
+        ("cluster=a100x61", "config group 'cluster' has no option 'a100x61'; allowed values: a100x16, local, sim."),
         ("data.name=???", "missing mandatory value 'data.name': set it with data.name=VALUE."),
     ],
 )

@@ -179,7 +179,7 @@ def test_registry_exemptions_are_str_fields_that_list_variants():
 CONVERTED = {
     "run.on_scene_error": ("fail", "skip"),
     "stage.lora.mode": ("train", "zero_shot"),
-    "stage.distill.encoder": ("daisy", "qwen3_vl_vision", "langsplat_proxy"),
+    "stage.distill.encoder": ("daisy", "qwen3_vl_vision", "langsplat_proxy", "langsplat"),
     "stage.distill.feature_tokenizer": ("foundation", "langsplat3"),
     "model.selector.path": ("route", "extrapolated"),
     "stage.evaluate_gen.future_poses": ("recorded", "predicted"),

@@ -66,7 +66,7 @@ def test_a_config_group_set_to_null_is_exit_2_naming_it(tmp_path):
     r = subprocess.run([sys.executable, "-m", "gdwm", "run", "cluster=null", f"workdir={tmp_path}"],
                        capture_output=True, text=True)  # fmt: skip
     assert r.returncode == 2
-    want = "gdwm: config error: cluster=null: cluster is a config group; choose one of a100x16, local"
+    want = "gdwm: config error: cluster=null: cluster is a config group; choose one of a100x16, local, sim"
     assert r.stderr.strip() == want
 
 

@@ -112,6 +112,12 @@ def test_flatten_params_nests_keys_lists_as_json_and_truncates():
     assert flatten_params({"l": [{"a": 1}, [2, 3]]}) == {"l": '[{"a": 1}, [2, 3]]'}
 
 
+def test_a_mapping_whose_keys_mlflow_refuses_in_names_is_one_json_param():
+    # the release importer's task_map: "NuInteract_RD&P" is no MLflow param name, so the map is logged whole
+    flat = flatten_params({"data": {"task_map": {"NuInteract_RD&P": "rdp", "NuInteract_2DVG": "vg2d"}, "n": 1}})
+    assert flat == {"data.task_map": '{"NuInteract_RD&P": "rdp", "NuInteract_2DVG": "vg2d"}', "data.n": "1"}
+
+
 def test_batches_split_at_size():
     assert [len(b) for b in batches(range(250), 100)] == [100, 100, 50]
     assert list(batches([], 100)) == []

@@ -283,7 +283,9 @@ def build(cfg: Any, root: str | Path, source: str | None = None, overwrite: bool
             "name": SOURCE,
             "version": GENERATOR_VERSION,
             "config": {
-                k: v for k, v in asdict(cfg).items() if k not in ("root", "builder", "summarizer", "num_workers")
+                k: v
+                for k, v in asdict(cfg).items()
+                if k not in ("root", "builder", "summarizer", "num_workers", "tables")
             },
             "resolution": [cfg.width, cfg.height],
             "scenarios": [f["scenario"] for f in scenarios],

@@ -12,6 +12,10 @@ SCENARIOS = ("curve", "stop", "lane_change", "start", "follow", "cruise")
 """Ego behaviours, one per scene (see ``pipelines.data.synth.scenarios``)."""
 
 
+SYNTH_TABLES = ("boxes2d", "boxes3d", "cameras", "depth", "ego_poses", "frames", "images", "lidar", "qa", "routes",
+                "scenes")  # fmt: skip
+
+
 @dataclass
 class SynthConfig(DatasetConfig):
     """Procedural driving scenes with 6 surround cameras, LiDAR, boxes and QA of every task family."""
@@ -24,6 +28,8 @@ class SynthConfig(DatasetConfig):
     """Generated from the seed: no input directory, so `gdwm run` makes it when absent."""
     planner: str | None = "pipelines.data.synth.config.planned_scenes"
     """Checks the keys and names the scenes without generating anything (``gdwm run --dry-run``)."""
+    tables: list[str] = field(default_factory=lambda: list(SYNTH_TABLES))
+    """Everything: cameras, images, depth, LiDAR, poses, boxes, QA and planned routes."""
     num_scenes: int = 4
     """Scenes to generate (``scene-0000`` ...)."""
     num_frames: int = 10

@@ -13,7 +13,8 @@ from gdwm.compare.runs import SelectionError, select, training_curves
 from gdwm.compare.samples import load_samples
 from gdwm.compare.stats import Settings
 from gdwm.compare.table import build_table
-from gdwm.config import sqlite_path
+from gdwm.config import sqlite_path, ui_url
+from gdwm.errors import CommandError
 from gdwm.term import console, err_console
 from gdwm.tracking import TrackingBackend
 
@@ -37,7 +38,6 @@ def settings(args: CompareArgs) -> Settings:
 
 def compare(cfg: DictConfig) -> int:
     """Exit 0 with the outputs written; 1 (with a message naming the selector) when nothing matches."""
-    from gdwm.cli import CommandError  # the CLI imports this module lazily: no cycle at import time
 
     args: CompareArgs = OmegaConf.to_object(cfg.args)
     layout: LayoutConfig = OmegaConf.to_object(cfg.compare)
@@ -94,7 +94,6 @@ def _render(fmt: Format, table, base: int, backend: TrackingBackend, cfg: DictCo
         return to_latex(table)
     if fmt is Format.csv:
         return to_csv(table)
-    from gdwm.cli import ui_url
     from gdwm.compare.report import html_report  # matplotlib only when a report is asked for
 
     curves = {r.run_id: training_curves(backend, r) for r in table.rows}

@@ -26,7 +26,7 @@ from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID
 
 from gdwm.compare.stats import SampleSet
 from gdwm.tracking import STAGE_TAG, TrackingBackend
-from gdwm.tracking.backend import _run_dict
+from gdwm.tracking.backend import run_dict
 
 ROW_KINDS = ("row", "run")
 TRIAL_KIND = "trial"
@@ -159,6 +159,18 @@ def _order(runs: list[dict]) -> list[dict]:
     return sorted(runs, key=key)
 
 
+def newest_per_row(runs: list[dict]) -> list[dict]:
+    """The newest run of each row label (``gdwm.row``), in ``runs``' order: a sweep launched again after a row's
+    config or code changed holds that row twice under its parent, and the table reports what the row is now."""
+    newest: dict[tuple, dict] = {}
+    for r in runs:
+        label = (r["tags"].get("gdwm.kind"), r["tags"].get("gdwm.row") or r["run_id"])
+        if label not in newest or (r["start_time"] or 0) > (newest[label]["start_time"] or 0):
+            newest[label] = r
+    keep = {r["run_id"] for r in newest.values()}
+    return [r for r in runs if r["run_id"] in keep]
+
+
 def _search(backend: TrackingBackend, filter_string: str, selector: str, **kw) -> list[dict]:
     try:
         return backend.search_runs(filter_string, **kw)
@@ -196,14 +208,14 @@ def select(
             raise SelectionError(f"{selector}: no sweep named '{sweep}' in experiment '{backend.experiment}'")
         sweep_run_id = parents[0]["run_id"]
         found = _search(backend, f"tags.`{MLFLOW_PARENT_RUN_ID}` = '{sweep_run_id}'", selector)
-        found = _order([r for r in found if r["tags"].get("gdwm.kind") in ("row", TRIAL_KIND)])
+        found = _order(newest_per_row([r for r in found if r["tags"].get("gdwm.kind") in ("row", TRIAL_KIND)]))
         name = sweep
     elif runs:
         selector = f"args.runs={list(runs)}"
         found = []
         for run_id in runs:
             try:
-                found.append(_run_dict(backend.client.get_run(run_id)))
+                found.append(run_dict(backend.client.get_run(run_id)))
             except MlflowException as e:
                 raise SelectionError(f"{selector}: no run '{run_id}' ({e.message})") from e
         name = "runs"
@@ -258,7 +270,7 @@ def stage_runs(backend: TrackingBackend, run_id: str, tags: dict[str, str]) -> l
     for key, linked in tags.items():
         if key.startswith(STAGE_LINK_PREFIX) and linked not in found:
             try:
-                found[linked] = _run_dict(backend.client.get_run(linked))
+                found[linked] = run_dict(backend.client.get_run(linked))
             except MlflowException:
                 continue  # a deleted stage run: its curves are simply absent
     return [r for r in found.values() if STAGE_TAG in r["tags"]]

@@ -216,7 +216,7 @@ class TrackingBackend:
                 order_by=order_by,
                 page_token=token,
             )
-            out += [_run_dict(r) for r in page]
+            out += [run_dict(r) for r in page]
             token = page.token
             if not token:
                 break
@@ -258,7 +258,7 @@ def _refused(uri: str, experiment: str, e: MlflowException) -> PermissionError |
     return None
 
 
-def _run_dict(run) -> dict:
+def run_dict(run) -> dict:
     info = run.info
     return {
         "run_id": info.run_id,

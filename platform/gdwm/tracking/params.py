@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
@@ -39,14 +40,19 @@ def _plain(value: Any) -> Any:
     return OmegaConf.to_container(value, resolve=True) if isinstance(value, DictConfig | ListConfig) else value
 
 
+_NAME = re.compile(r"[\w\-. :/]+")
+"""What MLflow accepts in a param name (alphanumerics, underscores, dashes, periods, spaces, colons, slashes)."""
+
+
 def flatten_params(cfg: Mapping | DictConfig, prefix: str = "") -> dict[str, str]:
-    """``{"a": {"b": 1}, "l": [1, 2]}`` -> ``{"a.b": "1", "l": "[1, 2]"}``; values cut to MLflow's param limit,
-    credentials in them masked (:func:`gdwm.redact.redact`: params are readable by every user of the store)."""
+    """``{"a": {"b": 1}, "l": [1, 2]}`` -> ``{"a.b": "1", "l": "[1, 2]"}``; a mapping with a key MLflow does not accept
+    in a name (``{"NuInteract_RD&P": ...}``) is one param, its JSON. Values cut to MLflow's param limit, credentials
+    in them masked (:func:`gdwm.redact.redact`: params are readable by every user of the store)."""
     out: dict[str, str] = {}
     for key, value in _plain(cfg).items():
         full = f"{prefix}{key}"
         value = _plain(value)
-        if isinstance(value, Mapping) and value:
+        if isinstance(value, Mapping) and value and all(_NAME.fullmatch(str(k)) for k in value):
             out.update(flatten_params(value, f"{full}."))
             continue
         if isinstance(value, Mapping | list | tuple):

@@ -3,8 +3,9 @@ import math
 import pytest
 import torch
 
+from model_zoo.quaternion import quat_to_rotmat
 from model_zoo.render import rasterize
-from model_zoo.render.project import ALPHA_MIN, covariance_3d, project_gaussians, quat_to_rotmat
+from model_zoo.render.project import ALPHA_MIN, covariance_3d, project_gaussians
 from tests.model_zoo.render import pinhole
 
 

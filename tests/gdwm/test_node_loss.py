@@ -1,0 +1,112 @@
+"""Losing a worker node of ``cluster=sim`` mid-run: the run finishes, training resumes from its last checkpoint on
+shared storage (the workdir), and MLflow and the cache hold each stage once.
+
+The node is lost the way a machine is: every process of it (its raylet and the workers under it) gets SIGKILL.
+Which processes those are comes from the cluster's state file (``<workdir>/sim-cluster/<pid>.json``) and the
+process tree; the node chosen is the one that hosts the training group, blocked after its step-1 checkpoint
+(``GDWM_TEST_BLOCK``, tests/gdwm/stages.py).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from gdwm.cache import Cache
+from tests.gdwm.test_run import Toy
+
+
+def _children(pid: int) -> list[int]:
+    """Every descendant of ``pid`` (from /proc)."""
+    parents: dict[int, list[int]] = {}
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit():
+            try:
+                ppid = int((p / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            parents.setdefault(ppid, []).append(int(p.name))
+    out, todo = [], [pid]
+    while todo:
+        kids = parents.get(todo.pop(), [])
+        out += kids
+        todo += kids
+    return out
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def _wait_for(path: Path, proc: subprocess.Popen, timeout: float) -> None:
+    end = time.monotonic() + timeout
+    while not path.exists():
+        if proc.poll() is not None:
+            out, err = proc.communicate()
+            raise AssertionError(f"driver exited {proc.returncode} before {path.name}\n{out[-3000:]}\n{err[-3000:]}")
+        assert time.monotonic() < end, f"no {path.name} after {timeout} s"
+        time.sleep(0.2)
+
+
+@pytest.mark.slow  # one toy run on a 2-node sim cluster up to the tokenizer, with a restart: ~2-3 min on 2 cores
+def test_losing_the_training_node_resumes_from_the_last_checkpoint_and_finishes(tmp_path):
+    toy = Toy(tmp_path)
+    proc = subprocess.Popen(
+        toy.args("targets=[tokenizer]", "cluster=sim", "run.live=false"),
+        env=toy.env(GDWM_TEST_BLOCK="tokenizer:step=1"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        _wait_for(tmp_path / "blocked-tokenizer", proc, 420)
+        (state_file,) = (toy.work / "sim-cluster").glob("*.json")
+        state = json.loads(state_file.read_text())
+        hosts = [n for n in state["nodes"] if any("RayTrainWorker" in _cmdline(c) for c in _children(n["raylet_pid"]))]
+        assert len(hosts) == 1, hosts  # the group of 2 (1 GPU each) packs onto one 2-GPU node
+        lost = hosts[0]
+        for pid in [*_children(lost["raylet_pid"]), *lost["pids"]]:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        killed_at = time.monotonic()
+        (tmp_path / "release").touch()
+        out, err = proc.communicate(timeout=480)
+        recovered_s = time.monotonic() - killed_at
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, f"exit {proc.returncode}\n{out[-3000:]}\n{err[-5000:]}"
+    print(f"node {lost['name']} lost at tokenizer step 1; the run finished {recovered_s:.1f} s later")
+
+    # the training resumed at step 2 from the step-1 checkpoint: steps 0..3 logged once each
+    runs = toy.runs()
+    assert sorted(r.data.tags["gdwm.stage"] for r in runs) == ["distill", "reconstruct", "tokenizer"]
+    tok = next(r for r in runs if r.data.tags["gdwm.stage"] == "tokenizer")
+    client = toy.client()
+    assert sorted(m.step for m in client.get_metric_history(tok.info.run_id, "loss")) == [0, 1, 2, 3]
+    starts = {m.step: m.value for m in client.get_metric_history(tok.info.run_id, "start")}
+    assert starts == {0: 0.0, 1: 0.0, 2: 2.0, 3: 2.0}
+    # nothing duplicated, nothing left RUNNING
+    assert {r.info.status for r in runs + toy.runs("run")} == {"FINISHED"}
+    assert len(toy.runs("run")) == 1
+    cache = Cache(toy.work / "cache")
+    assert [len(cache.entries(s)) for s in ("reconstruct", "distill", "tokenizer")] == [3, 3, 1]
+    (entry,) = cache.entries("tokenizer")
+    # 3 scenes x 64 x 4 features -> target 768 % 5 = 3 per step, 4 steps
+    w = torch.load(cache.materialize(entry) / "weights.pt", weights_only=True)["w"]
+    assert torch.equal(w, torch.full((4,), 12.0))
+    steps = toy.work / "checkpoints" / "tokenizer" / entry.key / "steps"
+    assert sorted(p.name for p in steps.iterdir()) == [f"step_{i:09d}" for i in range(4)]
+    assert not list((toy.work / "sim-cluster").glob("*.json"))
