@@ -214,6 +214,29 @@ def save_grid(path: Path, ex: GenExample, rgb: torch.Tensor) -> None:
     cv2.imwrite(str(path), cv2.cvtColor((row * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
 
 
+def train_dual(ctx: StageContext, mcfg: DiffusionConfig, cfg: DiffusionStageConfig, data: dict) -> RGBDDual:
+    """Stacked examples (``stack``, C_L added) -> the dual-condition model trained under Ray Train: the examples saved
+    for the workers, the initial model (``diffusion_vae``'s with ``mcfg``'s switches, kept for a resumed attempt),
+    and the trained state loaded back, in eval mode. Shared by ``diffusion`` and the world-record stage."""
+    data_path = ctx.checkpoint_dir / "examples.pt"
+    data_path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(data, data_path)
+
+    init = ctx.checkpoint_dir / "init"
+    if not (init / "rgbd.json").is_file():
+        model = RGBDDual.from_pretrained(ctx.upstream["diffusion_vae"].path)
+        model.cfg = replace(model.cfg, low_level=mcfg.low_level, high_level=mcfg.high_level,
+                            cond_dropout=mcfg.cond_dropout, guidance_scale=mcfg.guidance_scale,
+                            sample_steps=mcfg.sample_steps)  # fmt: skip
+        model.save(init)
+    loop_cfg = {"init_dir": str(init), "data": str(data_path), "train": asdict(cfg), "seed": ctx.seed}
+    result = ctx.train(train_loop, loop_cfg)
+    model = RGBDDual.from_pretrained(init)
+    model.load_state_dict(result.state["model"], strict=False)
+    model.eval()
+    return model
+
+
 @stage(
     "diffusion",
     "3",
@@ -245,22 +268,7 @@ def diffusion(ctx: StageContext) -> dict:
     tokens, mask = pad_tokens(c_L)
     if tokens is not None:
         data |= {"c_L": tokens, "c_L_mask": mask}
-    data_path = ctx.checkpoint_dir / "examples.pt"
-    data_path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(data, data_path)
-
-    init = ctx.checkpoint_dir / "init"
-    if not (init / "rgbd.json").is_file():
-        model = RGBDDual.from_pretrained(ctx.upstream["diffusion_vae"].path)
-        model.cfg = replace(model.cfg, low_level=mcfg.low_level, high_level=mcfg.high_level,
-                            cond_dropout=mcfg.cond_dropout, guidance_scale=mcfg.guidance_scale,
-                            sample_steps=mcfg.sample_steps)  # fmt: skip
-        model.save(init)
-    loop_cfg = {"init_dir": str(init), "data": str(data_path), "train": asdict(cfg), "seed": ctx.seed}
-    result = ctx.train(train_loop, loop_cfg)
-    model = RGBDDual.from_pretrained(init)
-    model.load_state_dict(result.state["model"], strict=False)
-    model.eval()
+    model = train_dual(ctx, mcfg, cfg, data)
 
     metrics: dict = {"train_examples": len(examples), **per_kind}
     model.save(ctx.out_dir)

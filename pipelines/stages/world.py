@@ -24,7 +24,7 @@ import json
 import math
 import re
 import warnings
-from dataclasses import asdict, replace
+from dataclasses import asdict
 
 import torch
 
@@ -36,7 +36,7 @@ from pipelines.evaluate.config import EvaluateGenConfig
 from pipelines.generation.config import DiffusionStageConfig, VaeStageConfig
 from pipelines.generation.samples import stack
 from pipelines.generation.world import KIND, clip_conditions, split_samples, vae_images, world_clips
-from pipelines.stages.diffusion import MODEL, diffusion_config, pad_tokens, save_grid, train_loop, zoo_variant
+from pipelines.stages.diffusion import MODEL, diffusion_config, pad_tokens, save_grid, train_dual, zoo_variant
 from pipelines.understanding.model import load_world_model
 
 NOT_COMPUTED = {
@@ -101,22 +101,7 @@ def world_diffusion(ctx: StageContext) -> dict:
     tokens, mask = pad_tokens(clip_conditions(world, ds, distill_dirs, clips, cfg.batch_size))
     if tokens is not None:
         data |= {"c_L": tokens, "c_L_mask": mask}
-    data_path = ctx.checkpoint_dir / "examples.pt"
-    data_path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(data, data_path)
-
-    init = ctx.checkpoint_dir / "init"
-    if not (init / "rgbd.json").is_file():
-        model = RGBDDual.from_pretrained(ctx.upstream["diffusion_vae"].path)
-        model.cfg = replace(model.cfg, low_level=mcfg.low_level, high_level=mcfg.high_level,
-                            cond_dropout=mcfg.cond_dropout, guidance_scale=mcfg.guidance_scale,
-                            sample_steps=mcfg.sample_steps)  # fmt: skip
-        model.save(init)
-    loop_cfg = {"init_dir": str(init), "data": str(data_path), "train": asdict(cfg), "seed": ctx.seed}
-    result = ctx.train(train_loop, loop_cfg)
-    model = RGBDDual.from_pretrained(init)
-    model.load_state_dict(result.state["model"], strict=False)
-    model.eval()
+    model = train_dual(ctx, mcfg, cfg, data)
 
     metrics = {k: int(v) for k, v in counts.items()}
     model.save(ctx.out_dir)
