@@ -66,7 +66,7 @@ def load_payload(path: Path, where: str) -> object:
 def refusal(message: str) -> str:
     """What torch's weights-only unpickler refused, e.g. ``unsupported GLOBAL posix.system``.
 
-    Its message leads with advice to retry with ``weights_only=False``, which must never be followed for a
+    Its message leads with advice to retry with ``weights_only`` turned off, which must never be followed for a
     downloaded file; the refused global (or else the first line that is not that advice) is what to report.
     """
     found = _REFUSED_GLOBAL.search(message)

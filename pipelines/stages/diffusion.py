@@ -14,6 +14,7 @@ registered in the model zoo as ``gdwm-unet``; a fitted tiny VAE (``vae/`` of ``d
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -71,27 +72,42 @@ def split_scenes(ds: GSQADataset, available: set[str]) -> dict[str, list[str]]:
 @stage("diffusion_vae", "1", config=[MODEL, "stage.diffusion_vae"], upstream=["reconstruct"], resources="train",
        needs={"images": "fits the VAE to the camera images"})  # fmt: skip
 def diffusion_vae(ctx: StageContext) -> dict:
+    return fit_vae(ctx, training_views)
+
+
+def training_views(ctx: StageContext, cfg: DiffusionConfig, vcfg: VaeStageConfig) -> torch.Tensor:
+    """``[N, 3, H, W]`` in [0, 1]: up to ``views_per_scene`` random (frame, camera) views of each training scene, RGB
+    and depth as pseudo-RGB."""
+    ds = GSQADataset(ctx.data_root)
+    scenes = split_scenes(ds, set(ctx.upstream["reconstruct"].scenes))["train"]
+    rng = np.random.default_rng(vcfg.seed)
+    hw = cfg.image_size
+    images = []
+    for sid in scenes:
+        scene = ds.scene(sid)
+        views = [(f, cam) for f in range(scene.num_frames) for cam in scene.cameras]
+        for i in rng.permutation(len(views))[: vcfg.views_per_scene]:
+            f, cam = views[i]
+            frame = scene.frame(f)
+            rgb = cv2.resize(frame.image(cam), (hw[1], hw[0]), interpolation=cv2.INTER_AREA)
+            depth = cv2.resize(frame.depth(cam), (hw[1], hw[0]), interpolation=cv2.INTER_NEAREST)
+            images.append(torch.from_numpy(rgb).permute(2, 0, 1).float() / 255.0)
+            images.append((depth_to_rgb(torch.from_numpy(depth)[None], cfg.max_depth)[0] + 1) / 2)
+    return torch.stack(images)
+
+
+def fit_vae(
+    ctx: StageContext, images_of: Callable[[StageContext, DiffusionConfig, VaeStageConfig], torch.Tensor]
+) -> dict:
+    """The ``diffusion_vae`` stages' body: build the model, fit the tiny flavor's VAE to ``images_of(ctx, cfg, vcfg)``
+    (logged every 10 steps), save it, register the fitted VAE as ``gdwm-vae``."""
     cfg = diffusion_config(ctx)
     vcfg = VaeStageConfig(**ctx.cfg("stage.diffusion_vae"))
     model: RGBDDual = registry.build("diffusion", cfg.name, cfg)
     metrics: dict = {"vae_fitted": 0.0}
     if cfg.tiny and vcfg.steps > 0:
-        ds = GSQADataset(ctx.data_root)
-        scenes = split_scenes(ds, set(ctx.upstream["reconstruct"].scenes))["train"]
-        rng = np.random.default_rng(vcfg.seed)
-        hw = cfg.image_size
-        images = []
-        for sid in scenes:
-            scene = ds.scene(sid)
-            views = [(f, cam) for f in range(scene.num_frames) for cam in scene.cameras]
-            for i in rng.permutation(len(views))[: vcfg.views_per_scene]:
-                f, cam = views[i]
-                frame = scene.frame(f)
-                rgb = cv2.resize(frame.image(cam), (hw[1], hw[0]), interpolation=cv2.INTER_AREA)
-                depth = cv2.resize(frame.depth(cam), (hw[1], hw[0]), interpolation=cv2.INTER_NEAREST)
-                images.append(torch.from_numpy(rgb).permute(2, 0, 1).float() / 255.0)
-                images.append((depth_to_rgb(torch.from_numpy(depth)[None], cfg.max_depth)[0] + 1) / 2)
-        losses = model.fit_vae(torch.stack(images), steps=vcfg.steps, lr=vcfg.lr, seed=vcfg.seed)
+        images = images_of(ctx, cfg, vcfg)
+        losses = model.fit_vae(images, steps=vcfg.steps, lr=vcfg.lr, seed=vcfg.seed)
         for step in range(0, len(losses), 10):
             ctx.tracker.log_metrics({"vae_loss": losses[step]}, step=step)
         metrics = {"vae_fitted": 1.0, "vae_loss_first": losses[0], "vae_loss_final": losses[-1], "images": len(images)}

@@ -29,14 +29,13 @@ from dataclasses import asdict
 import torch
 
 from gdwm.stage import StageContext, stage
-from model_zoo import registry
-from model_zoo.diffusion.rgbd_dual import RGBDDual
+from model_zoo.diffusion.rgbd_dual import DiffusionConfig, RGBDDual
 from pipelines.data.reader import GSQADataset
 from pipelines.evaluate.config import EvaluateGenConfig
 from pipelines.generation.config import DiffusionStageConfig, VaeStageConfig
 from pipelines.generation.samples import stack
 from pipelines.generation.world import KIND, clip_conditions, split_samples, vae_images, world_clips
-from pipelines.stages.diffusion import MODEL, diffusion_config, pad_tokens, save_grid, train_dual, zoo_variant
+from pipelines.stages.diffusion import MODEL, diffusion_config, fit_vae, pad_tokens, save_grid, train_dual, zoo_variant
 from pipelines.understanding.model import load_world_model
 
 NOT_COMPUTED = {
@@ -59,23 +58,13 @@ def _skipped(skipped: dict, split: str) -> dict[str, float]:
 @stage("diffusion_vae", "1", config=[MODEL, "stage.diffusion_vae"], resources="train",
        needs={"world": "fits the VAE to the world samples' reference views and ground-truth frames"})  # fmt: skip
 def world_vae(ctx: StageContext) -> dict:
-    cfg = diffusion_config(ctx)
-    vcfg = VaeStageConfig(**ctx.cfg("stage.diffusion_vae"))
-    model: RGBDDual = registry.build("diffusion", cfg.name, cfg)
-    metrics: dict = {"vae_fitted": 0.0}
-    if cfg.tiny and vcfg.steps > 0:
-        samples = split_samples(GSQADataset(ctx.data_root), "train")
-        # a world sample is one scene clip: views_per_scene caps the frames drawn from each
-        images = vae_images(samples, cfg.image_size, cfg.max_depth, vcfg.views_per_scene, vcfg.seed)
-        losses = model.fit_vae(images, steps=vcfg.steps, lr=vcfg.lr, seed=vcfg.seed)
-        for step in range(0, len(losses), 10):
-            ctx.tracker.log_metrics({"vae_loss": losses[step]}, step=step)
-        metrics = {"vae_fitted": 1.0, "vae_loss_first": losses[0], "vae_loss_final": losses[-1], "images": len(images)}
-    model.save(ctx.out_dir)
-    (ctx.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    if metrics["vae_fitted"]:
-        ctx.register("gdwm-vae", "vae", f"{cfg.name}-tiny")
-    return metrics
+    return fit_vae(ctx, _world_views)
+
+
+def _world_views(ctx: StageContext, cfg: DiffusionConfig, vcfg: VaeStageConfig) -> torch.Tensor:
+    samples = split_samples(GSQADataset(ctx.data_root), "train")
+    # a world sample is one scene clip: views_per_scene caps the frames drawn from each
+    return vae_images(samples, cfg.image_size, cfg.max_depth, vcfg.views_per_scene, vcfg.seed)
 
 
 @stage("diffusion", "1", config=[MODEL, "stage.diffusion"], upstream=["diffusion_vae", "lora", "distill"],

@@ -297,7 +297,7 @@ def test_a_pickled_call_of_os_system_is_refused_by_name_and_never_run(release, t
     root = tmp_path / "out"
     with pytest.raises(DataError) as e:
         build(ReleaseConfig(), root, str(release.root))
-    # torch's own message leads with advice to retry with weights_only=False: never shown, never followed.
+    # torch's own message leads with advice to turn weights_only off: never shown, never followed.
     assert str(e.value) == (
         f"{S2F3}: refused by torch.load(weights_only=True): unsupported GLOBAL posix.system "
         "(only tensors, containers and numeric arrays are accepted; it is never loaded unsafely)"
