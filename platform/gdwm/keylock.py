@@ -52,6 +52,7 @@ class KeyLock:
 
     def __init__(self, cache: Cache, scope: str, key: str, on_wait: Callable[[str], None] | None = None):
         cache._dir(scope, key)  # the same name rules as an entry: no path tricks through scope or key
+        self.cache = cache
         self.fs = cache.fs
         self.dir = f"{cache.root}/.locks/{scope}/{key}"
         self.where = f"{scope} {key[:12]}"
@@ -102,11 +103,21 @@ class KeyLock:
             try:
                 self._write()
             except OSError as e:  # a full disk, a lost mount: the holder keeps computing, others may take over
-                log.warning("lock %s: could not renew the claim: %s", self.where, e)
+                log.warning("%s", self.cache._store_error(e, f"lock {self.where}: could not renew the claim in cache "
+                                                              f"{self.cache.uri}"))  # fmt: skip
 
     # ---- acquire / release -------------------------------------------------------------------------------------
     def acquire(self) -> None:
-        self.fs.create_dir(self.dir, recursive=True)
+        """Wait for the lock; a store that cannot be reached is a CacheError naming the lock and the cache."""
+        try:
+            self._acquire()
+        except OSError as e:  # pyarrow's messages name no URI
+            where = f"lock {self.where}: could not take it in cache {self.cache.uri}"
+            raise self.cache._store_error(e, where) from None
+
+    def _acquire(self) -> None:
+        if not self.cache._dirless:  # an object store needs no directory (creating one is a request of its own)
+            self.fs.create_dir(self.dir, recursive=True)
         start, told, pause = time.monotonic(), False, POLL_S
         while True:
             others = self._others()

@@ -44,6 +44,7 @@ from typing import Any
 
 import ray.train
 import ray.train.collective
+import ray.train.torch
 import torch
 from ray.train import Checkpoint, FailureConfig, RunConfig, ScalingConfig
 from ray.train.torch import TorchConfig, TorchTrainer
@@ -82,6 +83,15 @@ class TrainSession:
     @property
     def world_size(self) -> int:
         return ray.train.get_context().get_world_size()
+
+    @property
+    def device(self) -> torch.device:
+        """This worker's torch device: its GPU where CUDA has one, else the CPU.
+
+        Ray Train answers ``cuda:N`` for every worker it gave a GPU resource, also where the GPU is a Ray resource
+        only (``cluster=sim`` without CUDA): the loop then runs its CPU kernels instead of failing in ``.to()``.
+        """
+        return ray.train.torch.get_device() if torch.cuda.is_available() else torch.device("cpu")
 
     def restore(self) -> dict | None:
         """The newest verified state (tensors and plain values, loaded with weights_only=True); None: start at 0.

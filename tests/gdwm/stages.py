@@ -107,11 +107,14 @@ def distill(ctx: StageContext) -> None:
 def _train_loop(s) -> None:
     state = s.restore()
     start = state["step"] + 1 if state else 0
-    w = state["w"] if state else torch.zeros(4)
+    # on s.device, as a real loop: fake GPUs (cluster=sim without CUDA) must give a device tensors can move to
+    w = (state["w"] if state else torch.zeros(4)).to(s.device)
+    if s.rank == 0:
+        (_test_dir() / f"device-{s.config['stage']}.txt").write_text(str(w.device))
     kill = os.environ.get("GDWM_TEST_KILL", "")
     for step in range(start, s.config["steps"]):
         w = w + s.config["target"]
-        s.report(step, {"loss": float(1.0 / (step + 1)), "start": float(start)}, state={"step": step, "w": w})
+        s.report(step, {"loss": float(1.0 / (step + 1)), "start": float(start)}, state={"step": step, "w": w.cpu()})
         if kill == f"{s.config['stage']}:step={step}" and _once(f"{s.config['stage']}-step"):
             os.kill(os.getpid(), signal.SIGKILL)
         if os.environ.get("GDWM_TEST_BLOCK") == f"{s.config['stage']}:step={step}":

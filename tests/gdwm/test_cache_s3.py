@@ -9,68 +9,23 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import re
+import subprocess
 import time
 from pathlib import Path
 
-import boto3
 import pytest
 from moto.core.authorization import enable_iam_authentication
-from moto.server import ThreadedMotoServer
 
 from gdwm.cache import MANIFEST, Cache, CacheError, Manifest, cache_key
 from gdwm.housekeeping import Limits, gc, scan
+from tests.gdwm.servers import BUCKET, SECRET, Moto
 from tests.gdwm.test_run import ALL, Toy, _ok
 
-BUCKET = "gdwm"
-SECRET = "wJalrXUtnFEMI-not-a-real-secret-K7MDENG"
 WRONG_SECRET = "a-wrong-secret-that-must-never-be-printed"
 CONFIG = {"lora": {"rank": 8, "alpha": 16.0}, "lr": 0.1}
 UPSTREAM = {"tokenizer": "a" * 64}
 DATA = "synthetic_mini@seed0"
 FILES = {"adapter.bin": b"\x00\x01" * 5000, "metrics.json": b'{"loss": 1.25}', "sub/dir/log.txt": b"step 1\n"}
-
-
-class Moto:
-    """A moto S3 server on 127.0.0.1 that can go down and come back on the same port (its buckets live in the
-    process, so they survive a restart)."""
-
-    def __init__(self):
-        self.server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-        self.server.start()
-        self.port = self.server.get_host_and_port()[1]
-        self.endpoint = f"http://127.0.0.1:{self.port}"
-        self.up = True
-
-    def stop(self) -> None:
-        self.server.stop()
-        self.up = False
-
-    def start(self) -> None:
-        self.server = ThreadedMotoServer(ip_address="127.0.0.1", port=self.port, verbose=False)
-        self.server.start()
-        self.up = True
-
-    def uri(self, prefix: str) -> str:
-        return f"s3://{BUCKET}/{prefix}?endpoint_override=127.0.0.1:{self.port}&scheme=http"
-
-    def client(self):
-        return boto3.client(
-            "s3",
-            endpoint_url=self.endpoint,
-            region_name="us-east-1",
-            aws_access_key_id="testing",
-            aws_secret_access_key=SECRET,
-        )
-
-    def objects(self, prefix: str) -> dict[str, bytes]:
-        """Every object under ``prefix/`` (directory markers, keys ending in '/', left out) with its bytes."""
-        c = self.client()
-        listed = c.list_objects_v2(Bucket=BUCKET, Prefix=f"{prefix}/").get("Contents", [])
-        return {
-            o["Key"]: c.get_object(Bucket=BUCKET, Key=o["Key"])["Body"].read()
-            for o in listed
-            if not o["Key"].endswith("/")
-        }
 
 
 @pytest.fixture(scope="module")
@@ -313,3 +268,40 @@ def test_gdwm_run_on_s3_then_a_rerun_is_all_cache_hits(s3, tmp_path):
     _ok(r)
     assert toy.executions() == []
     assert "all 11 stage outputs cached and verified; nothing to run" in r.stdout
+
+
+@pytest.mark.slow  # a toy run on local Ray with the S3 server stopped mid-stage: ~1 min
+def test_endpoint_down_inside_a_gdwm_run_fails_the_stage_naming_the_cache(s3, tmp_path):
+    """The store goes away while reconstruct computes: its scenes cannot be published, the run exits 1 naming the
+    cache URI, no entry of the stage is visible once the store is back, and the next run computes them."""
+    toy = Toy(tmp_path)
+    env = {"AWS_ENDPOINT_URL": s3.endpoint, "GDWM_LOCAL_CACHE": str(tmp_path / "local-copies"), "RAY_ADDRESS": "local"}
+    uri = f"s3://{BUCKET}/midrun"
+    proc = subprocess.Popen(toy.args(f"cache.uri={uri}", "targets=[reconstruct]", "run.live=false"),
+                            env=toy.env(GDWM_TEST_BLOCK="reconstruct", **env), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        end = time.monotonic() + 240
+        while not (tmp_path / "blocked-reconstruct").exists():
+            assert proc.poll() is None and time.monotonic() < end, proc.communicate()
+            time.sleep(0.2)
+        s3.stop()
+        (tmp_path / "release").touch()
+        out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        if not s3.up:
+            s3.start()
+    assert proc.returncode == 1, f"exit {proc.returncode}\n{out[-3000:]}\n{err[-3000:]}"
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("gdwm run: ") and f"s3://{BUCKET}/midrun" in last, err[-3000:]
+    assert "NETWORK_CONNECTION" in last and SECRET not in out + err
+    assert Cache(s3.uri("midrun")).entries("reconstruct") == []
+    assert {r.info.status for r in toy.runs()} == {"FAILED"}
+    (tmp_path / "executions.log").write_text("")
+    r = toy.run(f"cache.uri={uri}", "targets=[reconstruct]", **env)
+    _ok(r)
+    assert sorted(s for _, s in toy.executions()) == ["scene-0000", "scene-0001", "scene-0002"]
+    assert len(Cache(s3.uri("midrun")).entries("reconstruct")) == 3

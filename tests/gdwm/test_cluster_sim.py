@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import signal
-import socket
 import subprocess
 import sys
 import textwrap
@@ -20,19 +19,14 @@ import pytest
 import torch
 
 from gdwm.cache import Cache
+from tests.gdwm.servers import free_port
 from tests.gdwm.test_run import REPO, Toy, _ok
 
 SIM = ["cluster=sim", "run.live=false"]
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_unreachable_address_exits_1_naming_it_within_30_s(tmp_path):
-    port = _free_port()  # bound and released: nothing listens there
+    port = free_port()  # bound and released: nothing listens there
     toy = Toy(tmp_path)
     start = time.monotonic()
     r = toy.run("cluster=a100x16", f"cluster.address=127.0.0.1:{port}")

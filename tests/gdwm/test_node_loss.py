@@ -110,3 +110,52 @@ def test_losing_the_training_node_resumes_from_the_last_checkpoint_and_finishes(
     steps = toy.work / "checkpoints" / "tokenizer" / entry.key / "steps"
     assert sorted(p.name for p in steps.iterdir()) == [f"step_{i:09d}" for i in range(4)]
     assert not list((toy.work / "sim-cluster").glob("*.json"))
+
+
+@pytest.mark.slow  # one toy reconstruct on a 2-node sim cluster with a node lost mid-stage: ~1-2 min on 2 cores
+def test_losing_a_node_mid_per_scene_stage_reruns_its_scenes_on_the_other_node(tmp_path):
+    toy = Toy(tmp_path)
+    proc = subprocess.Popen(
+        toy.args("targets=[reconstruct]", "cluster=sim", "run.live=false"),
+        env=toy.env(GDWM_TEST_BLOCK="reconstruct"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        _wait_for(tmp_path / "blocked-reconstruct", proc, 300)
+        (state_file,) = (toy.work / "sim-cluster").glob("*.json")
+        state = json.loads(state_file.read_text())
+        # the node whose scene actor is inside a scene now (executions.log names the actor's pid)
+        log = (tmp_path / "executions.log").read_text().splitlines()
+        began = {int(line.split()[3]): line.split()[1] for line in log}
+        lost = next(n for n in state["nodes"] if set(began) & set(_children(n["raylet_pid"])))
+        survivor = next(n for n in state["nodes"] if n["name"] != lost["name"])
+        interrupted = sorted(s for pid, s in began.items() if pid in _children(lost["raylet_pid"]))
+        for pid in [*_children(lost["raylet_pid"]), *lost["pids"]]:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        time.sleep(3)  # Ray notices the node gone (health checks every second, 3 misses) before the scenes go on
+        (tmp_path / "release").touch()
+        out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, f"exit {proc.returncode}\n{out[-3000:]}\n{err[-5000:]}"
+
+    # every scene done once in the cache and in MLflow; the lost node's scenes ran again, on the survivor
+    runs = toy.runs()
+    assert [r.data.tags["gdwm.stage"] for r in runs] == ["reconstruct"]
+    assert {r.info.status for r in runs + toy.runs("run")} == {"FINISHED"} and len(toy.runs("run")) == 1
+    psnr = {k for k in runs[0].data.metrics if k.endswith("/psnr")}
+    assert psnr == {"scene-0000/psnr", "scene-0001/psnr", "scene-0002/psnr"}
+    client = toy.client()
+    assert all(len(client.get_metric_history(runs[0].info.run_id, k)) == 1 for k in psnr)  # none logged twice
+    assert len(Cache(toy.work / "cache").entries("reconstruct")) == 3
+    ran = [s for stage, s in toy.executions() if stage == "reconstruct"]
+    assert sorted(set(ran)) == ["scene-0000", "scene-0001", "scene-0002"]
+    assert all(ran.count(s) == 2 for s in interrupted) and len(ran) == 3 + len(interrupted), (interrupted, ran)
+    placed = {line for line in out.splitlines() if line.startswith("sim placement: ")}
+    (line,) = placed
+    assert f"{survivor['name']}: SceneWorker x" in line and f"{lost['name']}: SceneWorker" not in line
