@@ -28,7 +28,7 @@ from gdwm.cache import Cache, Manifest, cache_key
 from gdwm.determinism import stage_start
 from gdwm.keylock import KeyLock
 from gdwm.stage import StageContext, StageDef, UpstreamOutput
-from gdwm.tracking import Tracker, call
+from gdwm.tracking import Sink, Tracker, TrackingClient
 from gdwm.zoo.registry import lineage_tags
 
 TAG_STAGE, TAG_KEY, TAG_VERSION, TAG_SCENES = "gdwm.stage", "gdwm.cache_key", "gdwm.version", "gdwm.scenes"
@@ -65,7 +65,8 @@ class RunEnv:
     data_fingerprint: str
     scenes: tuple[str, ...]
     checkpoint_root: str
-    sink: Any
+    sink: Sink
+    """The tracking backend or its actor handle, shipped as is (both pickle); ``tracking`` calls it."""
     parent_run_id: str | None
     progress: Any
     resources: Mapping[str, Mapping[str, float]]
@@ -83,6 +84,10 @@ class RunEnv:
     """Stage -> ``cache.reuse`` mode (default ``same_code``)."""
     verify: bool = True
     """``cache.verify``: re-hash an entry's files on every lookup (else trust a complete manifest and the sizes)."""
+
+    @property
+    def tracking(self) -> TrackingClient:
+        return TrackingClient(self.sink)
 
 
 @dataclass(frozen=True)
@@ -232,8 +237,8 @@ def _progress(env: RunEnv, stage: str, scene: str | None, status: str, **kw) -> 
 def _open_stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping) -> str:
     run_id = _stage_run(env, sd, key, subset)
     if (fp := env.code.get(sd.name)) is not None:  # the code behind the key: its digest, files and libraries
-        call(env.sink, "set_tags", run_id, {TAG_CODE: fp["digest"]})
-        call(env.sink, "log_text", run_id, json.dumps(fp, indent=1, sort_keys=True), "code.json")
+        env.tracking.set_tags(run_id, {TAG_CODE: fp["digest"]})
+        env.tracking.log_text(run_id, json.dumps(fp, indent=1, sort_keys=True), "code.json")
     return run_id
 
 
@@ -241,19 +246,19 @@ def _stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping) -> str:
     """The MLflow run for this key: an unfinished earlier attempt's is reopened (a killed attempt leaves no
     duplicate); after a finished one (a recompute: a corrupt or invalidated entry, a re-run scene, a forced
     recompute) a new run is created, tagged ``gdwm.recomputes`` with the original, whose history stays as it was."""
-    found = call(env.sink, "search_runs", f"tags.`{TAG_KEY}` = '{key}' and tags.`{TAG_STAGE}` = '{sd.name}'",
-                 1000, ["attributes.start_time DESC"])  # fmt: skip
+    where = f"tags.`{TAG_KEY}` = '{key}' and tags.`{TAG_STAGE}` = '{sd.name}'"
+    found = env.tracking.search_runs(where, order_by=["attributes.start_time DESC"])
     unfinished = [r for r in found if r["status"] != "FINISHED"]
     if unfinished:
         run_id = unfinished[0]["run_id"]
-        call(env.sink, "reopen_run", run_id)
-        call(env.sink, "set_tags", run_id, {"gdwm.resumed": "true"})
+        env.tracking.reopen_run(run_id)
+        env.tracking.set_tags(run_id, {"gdwm.resumed": "true"})
         return run_id
     tags = {TAG_STAGE: sd.name, TAG_KEY: key, TAG_VERSION: sd.version, "gdwm.kind": "stage", **env.run_tags}
     if found:
         tags[TAG_RECOMPUTES] = found[0]["run_id"]
-    run_id = call(env.sink, "create_run", f"{sd.name}-{key[:8]}", tags, env.parent_run_id)
-    call(env.sink, "log_params", run_id, dict(subset))
+    run_id = env.tracking.create_run(f"{sd.name}-{key[:8]}", tags, env.parent_run_id)
+    env.tracking.log_params(run_id, dict(subset))
     return run_id
 
 
@@ -310,7 +315,7 @@ def _execute(sd, key, base, subset, env, results, tracker, scene=None, state=Non
         if m.run_id == tracker.run_id:  # else another attempt published this key first (and registered its own)
             for r in ctx.registrations:
                 tags = {**lineage_tags(sd.name, key, m.upstream, m.extra, scene), **r.tags}
-                call(env.sink, "register_component", m.run_id, r.name, str(out / r.path), r.variant, tags)
+                env.tracking.register_component(m.run_id, r.name, str(out / r.path), r.variant, tags)
         return str(cache.materialize(m)), dict(m.extra)
 
 
@@ -362,7 +367,7 @@ def _compute(sd: StageDef, key: str, base: str, subset: dict, env: RunEnv, resul
         _end_failed(env, run_id, tb)
         _progress(env, sd.name, None, "failed", message=str(e)[:200])
         raise StageFailed(sd.name, {None: tb}) from None
-    call(env.sink, "end_run", run_id, "FINISHED")
+    env.tracking.end_run(run_id, "FINISHED")
     _progress(env, sd.name, None, "done")
     return StageResult(sd.name, key, False, run_id, path, extra=extra, base=base)
 
@@ -377,8 +382,8 @@ def _key_lock(cache: Cache, env: RunEnv, stage: str, scene: str | None, key: str
 
 
 def _end_failed(env: RunEnv, run_id: str, text: str) -> None:
-    call(env.sink, "log_text", run_id, text, "error.txt")
-    call(env.sink, "end_run", run_id, "FAILED")
+    env.tracking.log_text(run_id, text, "error.txt")
+    env.tracking.end_run(run_id, "FAILED")
 
 
 class SceneWorker:
@@ -442,7 +447,7 @@ def run_scene_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResu
 def _compute_scenes(sd, subset, env: RunEnv, results, scenes, misses, keys, bases, done, agg) -> StageResult:
     upstream_failed = {s for r in results for s in r.failed}
     run_id = _open_stage_run(env, sd, agg, subset)
-    call(env.sink, "set_tags", run_id, {TAG_SCENES: ",".join(misses)})
+    env.tracking.set_tags(run_id, {TAG_SCENES: ",".join(misses)})
     _progress(env, sd.name, None, "running", key=agg, run_id=run_id)
     errors = _run_pool(sd, subset, env, run_id, results, misses, keys, bases, done)
     for s in upstream_failed:
@@ -452,11 +457,11 @@ def _compute_scenes(sd, subset, env: RunEnv, results, scenes, misses, keys, base
         _progress(env, sd.name, None, "failed", message=f"{len(errors)} scene(s) failed")
         raise StageFailed(sd.name, errors)
     if errors:
-        call(env.sink, "log_text", run_id, "\n\n".join(f"== {s} ==\n{tb}" for s, tb in errors.items()), "skipped.txt")
+        env.tracking.log_text(run_id, "\n\n".join(f"== {s} ==\n{tb}" for s, tb in errors.items()), "skipped.txt")
     done = {s: done[s] for s in scenes if s in done}  # the dataset's scene order, not the order scenes finished in
     agg = aggregate_key(sd, subset, {s: k for s, (k, _) in done.items()}, env)
     agg_base = aggregate_key(sd, subset, {s: bases[s] for s in done}, env)
-    call(env.sink, "end_run", run_id, "FINISHED")
+    env.tracking.end_run(run_id, "FINISHED")
     _progress(env, sd.name, None, "done", key=agg, message=f"{len(errors)} skipped" if errors else "")
     return StageResult(sd.name, agg, False, run_id, scenes=done, failed={**errors}, base=agg_base,
                        bases={s: bases[s] for s in done})  # fmt: skip

@@ -69,7 +69,7 @@ from gdwm.plan import (
 from gdwm.progress import ProgressActor, render
 from gdwm.simcluster import SimCluster, SimConfig
 from gdwm.term import console, err_console
-from gdwm.tracking import AliveExcept, RunGuard, call, open_tracking, process_owner
+from gdwm.tracking import AliveExcept, RunGuard, Sink, TrackingClient, open_tracking, process_owner
 from gdwm.zoo.registry import metric_tags
 
 __all__ = ["PlanError", "RunError", "launch", "run_pipeline"]
@@ -186,8 +186,8 @@ def _sigterm(signum: int, _frame) -> None:
 
 
 @contextlib.contextmanager
-def driver_session(cfg: DictConfig) -> Iterator:
-    """Ray (started here unless already up) and the tracking sink of one driver invocation; runs that dead drivers
+def driver_session(cfg: DictConfig) -> Iterator[TrackingClient]:
+    """Ray (started here unless already up) and the tracking client of one driver invocation; runs that dead drivers
     left RUNNING are reconciled first. Whatever escapes (Ctrl-C, SIGTERM, an error) ends the runs this driver owns
     KILLED now, not at the next reconcile."""
     started = init_ray(cfg)
@@ -196,12 +196,13 @@ def driver_session(cfg: DictConfig) -> Iterator:
     except BaseException:
         _stop_ray(started)
         raise
+    tracking = TrackingClient(sink)
     try:
-        call(sink, "reconcile")
-        yield sink
+        tracking.reconcile()
+        yield tracking
     except BaseException as exc:
         try:
-            call(sink, "reconcile", AliveExcept(process_owner()))
+            tracking.reconcile(AliveExcept(process_owner()))
         except Exception as e:  # the store can't be written (a full disk): the error that got us here matters more
             hint = "its runs stay RUNNING until the next gdwm run or sweep on this store ends them"
             if isinstance(exc, Exception):
@@ -238,41 +239,41 @@ class Layout:
     def stage_tags(self) -> dict[str, str]:
         return {"gdwm.sweep": self.sweep.name} if self.sweep else {}
 
-    def open(self, sink, cfg: DictConfig, rows: list[Row], trials: list[Trial]) -> str:
+    def open(self, tracking: TrackingClient, cfg: DictConfig, rows: list[Row], trials: list[Trial]) -> str:
         """The launch's run (found again or created), and every row's and trial's run under it."""
-        parent = self._parent(sink, cfg)
+        parent = self._parent(tracking, cfg)
         if self.sweep is None:  # the run is the row (and, with one seed, the trial)
             seeds = rows[0].seeds
-            call(sink, "set_tags", parent, {"gdwm.seeds": ",".join(map(str, seeds))} | (
+            tracking.set_tags(parent, {"gdwm.seeds": ",".join(map(str, seeds))} | (
                 {"gdwm.seed": str(seeds[0])} if len(seeds) == 1 else {}))  # fmt: skip
         for row in rows:
             mine = [t for t in trials if t.row is row]
-            row.run_id = parent if self.sweep is None else self._row_run(sink, parent, row, mine[0].cfg)
+            row.run_id = parent if self.sweep is None else self._row_run(tracking, parent, row, mine[0].cfg)
             for t in mine:
-                t.run_id = row.run_id if len(mine) == 1 and self.sweep is None else self._trial_run(sink, row, t)
+                t.run_id = row.run_id if len(mine) == 1 and self.sweep is None else self._trial_run(tracking, row, t)
         return parent
 
-    def _find(self, sink, tags: dict[str, str]) -> str | None:
-        found = call(sink, "search_runs", " and ".join(f"tags.`{k}` = '{v}'" for k, v in tags.items()))
+    def _find(self, tracking: TrackingClient, tags: dict[str, str]) -> str | None:
+        found = tracking.search_runs(" and ".join(f"tags.`{k}` = '{v}'" for k, v in tags.items()))
         if not found:
             return None
-        call(sink, "reopen_run", found[0]["run_id"])
+        tracking.reopen_run(found[0]["run_id"])
         return found[0]["run_id"]
 
-    def _parent(self, sink, cfg: DictConfig) -> str:
+    def _parent(self, tracking: TrackingClient, cfg: DictConfig) -> str:
         """A re-run (a resume after a crash, an added row) continues the same run."""
         if self.sweep is not None:
             tags = {"gdwm.kind": "sweep", "gdwm.sweep": self.sweep.name}
-            run_id = self._find(sink, tags) or call(sink, "create_run", f"sweep-{self.sweep.name}", tags)
+            run_id = self._find(tracking, tags) or tracking.create_run(f"sweep-{self.sweep.name}", tags)
             text = OmegaConf.to_yaml(OmegaConf.structured(self.sweep))
-            call(sink, "log_text", run_id, text, "sweep.yaml")
+            tracking.log_text(run_id, text, "sweep.yaml")
             return run_id
         tags = {"gdwm.kind": "run", "gdwm.run_key": self.launch_id.removeprefix("run:")}
-        run_id = self._find(sink, tags)
+        run_id = self._find(tracking, tags)
         if run_id is None:
             tags |= {"gdwm.pipeline": self.pipeline}
-            run_id = call(sink, "create_run", f"run-{self.pipeline}-{tags['gdwm.run_key'][:8]}", tags, None)
-            call(sink, "log_params", run_id, OmegaConf.to_container(cfg, resolve=True))
+            run_id = tracking.create_run(f"run-{self.pipeline}-{tags['gdwm.run_key'][:8]}", tags, None)
+            tracking.log_params(run_id, OmegaConf.to_container(cfg, resolve=True))
         return run_id
 
     def _row_tags(self, row: Row) -> dict[str, str]:
@@ -280,26 +281,26 @@ class Layout:
         tags |= {f"gdwm.factor.{k}": v for k, v in row.factors.items()}
         return tags | ({"gdwm.sweep": self.sweep.name, "gdwm.overrides": " ".join(row.overrides)} if self.sweep else {})
 
-    def _row_run(self, sink, parent: str, row: Row, cfg: DictConfig) -> str:
+    def _row_run(self, tracking: TrackingClient, parent: str, row: Row, cfg: DictConfig) -> str:
         tags = {"gdwm.kind": "row", ROW_KEY: row.key, LAUNCH: self.launch_id, **self._row_tags(row)}
-        run_id = self._find(sink, {ROW_KEY: row.key, LAUNCH: self.launch_id})
+        run_id = self._find(tracking, {ROW_KEY: row.key, LAUNCH: self.launch_id})
         if run_id is not None:
-            call(sink, "set_tags", run_id, tags)  # an edited row keeps its run; its index may move
+            tracking.set_tags(run_id, tags)  # an edited row keeps its run; its index may move
             return run_id
-        run_id = call(sink, "create_run", f"{self.sweep.name}/{row.label}", tags, parent)
-        call(sink, "log_params", run_id, OmegaConf.to_container(cfg, resolve=True))
+        run_id = tracking.create_run(f"{self.sweep.name}/{row.label}", tags, parent)
+        tracking.log_params(run_id, OmegaConf.to_container(cfg, resolve=True))
         return run_id
 
-    def _trial_run(self, sink, row: Row, t: Trial) -> str:
+    def _trial_run(self, tracking: TrackingClient, row: Row, t: Trial) -> str:
         tags = {"gdwm.kind": "trial", TRIAL_KEY: t.key, LAUNCH: self.launch_id, "gdwm.seed": str(t.seed)}
         tags |= self._row_tags(row) if self.sweep else {}
-        run_id = self._find(sink, {TRIAL_KEY: t.key, LAUNCH: self.launch_id})
+        run_id = self._find(tracking, {TRIAL_KEY: t.key, LAUNCH: self.launch_id})
         if run_id is not None:
-            call(sink, "set_tags", run_id, tags)
+            tracking.set_tags(run_id, tags)
             return run_id
         name = f"{self.sweep.name}/{t.name}" if self.sweep else f"seed-{t.seed}"
-        run_id = call(sink, "create_run", name, tags, row.run_id)
-        call(sink, "log_params", run_id, OmegaConf.to_container(t.cfg, resolve=True))
+        run_id = tracking.create_run(name, tags, row.run_id)
+        tracking.log_params(run_id, OmegaConf.to_container(t.cfg, resolve=True))
         return run_id
 
 
@@ -346,22 +347,24 @@ def evaluation_samples(pipe: Pipeline, results: dict[str, StageResult]) -> dict[
     return out
 
 
-def report_evaluation(sink, run_id: str, pipe: Pipeline, results: dict[str, StageResult]) -> dict[str, float]:
+def report_evaluation(
+    tracking: TrackingClient, run_id: str, pipe: Pipeline, results: dict[str, StageResult]
+) -> dict[str, float]:
     """The evaluation stages' metrics, per-sample tables (``<stage>/*.parquet``) and how to rescore them (tags
     ``gdwm.samples.<stage>``, ``gdwm.scorer.<stage>``, ``gdwm.strata.<stage>``: what ``gdwm compare`` resamples)
     onto the trial's run."""
     metrics = evaluation_metrics(pipe, results)
     if metrics:
-        call(sink, "log_metrics", run_id, metrics)
+        tracking.log_metrics(run_id, metrics)
     for name, r in results.items():
         if pipe.stages[name].evaluation and r.path:
             for table in sorted(Path(r.path).glob("*.parquet")):
-                call(sink, "log_artifact", run_id, str(table), name)
+                tracking.log_artifact(run_id, str(table), name)
     tags = {
         k: v for n, s in evaluation_samples(pipe, results).items() for k, v in s.tags(n, f"{n}/{s.path.name}").items()
     }
     if tags:
-        call(sink, "set_tags", run_id, tags)
+        tracking.set_tags(run_id, tags)
     return metrics
 
 
@@ -408,7 +411,7 @@ def _print_stage(k: tuple[str, str], r: Outcome, users: list[str]) -> None:
 
 def execute(
     trials: list[Trial],
-    sink,
+    sink: Sink,
     parent: str,
     on_trial: Callable[[Trial, dict[str, Outcome]], None],
     *,
@@ -481,33 +484,33 @@ def launch(
     summary = LaunchSummary(naive=sum(len(t.order) for t in trials))
     results: dict[int, TrialResult] = {}
 
-    with _launch_lock(cfg, layout), driver_session(cfg) as sink:
-        parent = layout.open(sink, cfg, rows, trials)
+    with _launch_lock(cfg, layout), driver_session(cfg) as tracking:
+        parent = layout.open(tracking, cfg, rows, trials)
         summary.parent_run_id = parent
         # on the driver's node, as the tracking actor: a worker node lost mid-run must not take the board along
         here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
         progress = ProgressActor.options(scheduling_strategy=here).remote() if layout.sweep is None else None
 
         def on_trial(t: Trial, outcomes: dict[str, Outcome]) -> None:
-            results[id(t)] = _finish_trial(sink, layout, t, outcomes)
+            results[id(t)] = _finish_trial(tracking, layout, t, outcomes)
             row_trials = [x for x in trials if x.row is t.row]
             if all(id(x) in results for x in row_trials):
-                _finish_row(sink, layout, t.row, [results[id(x)] for x in row_trials])
+                _finish_row(tracking, layout, t.row, [results[id(x)] for x in row_trials])
 
         try:
-            with RunGuard(sink, parent):
-                summary.executions = execute(trials, sink, parent, on_trial, stage_tags=layout.stage_tags,
+            with RunGuard(tracking.sink, parent):
+                summary.executions = execute(trials, tracking.sink, parent, on_trial, stage_tags=layout.stage_tags,
                                              progress=progress, live=live, print_stages=print_stages)  # fmt: skip
                 summary.trials = [results[id(t)] for t in trials]
                 if layout.sweep is None:
-                    call(sink, "log_metrics", parent, {"stages_run": summary.executions})
+                    tracking.log_metrics(parent, {"stages_run": summary.executions})
                     _print_run_summaries(summary, progress)
                     if not summary.ok:  # the guard ends the run FAILED; the caller reports from the summary
                         bad = next(t for t in summary.trials if not t.ok)
                         stage = next(iter(bad.failed), bad.blocked[0] if bad.blocked else "")
                         raise StageFailed(stage, {None: bad.failed.get(stage, "blocked")})
                 else:
-                    call(sink, "log_metrics", parent, {
+                    tracking.log_metrics(parent, {
                         "trials": len(trials), "trials_failed": sum(not t.ok for t in summary.trials),
                         "stage_executions": summary.executions, "stage_executions_naive": summary.naive,
                     })  # fmt: skip
@@ -529,7 +532,7 @@ def _launch_lock(cfg: DictConfig, layout: Layout) -> KeyLock:
     return KeyLock(Cache(cfg.cache.uri), "launch", key, on_wait=waiting)
 
 
-def _finish_trial(sink, layout: Layout, t: Trial, outcomes: dict[str, Outcome]) -> TrialResult:
+def _finish_trial(tracking: TrackingClient, layout: Layout, t: Trial, outcomes: dict[str, Outcome]) -> TrialResult:
     """Record one trial's outcome on its run: a failure (stage, error), or its evaluation and stage links."""
     res = TrialResult(t)
     for n, r in outcomes.items():
@@ -542,37 +545,37 @@ def _finish_trial(sink, layout: Layout, t: Trial, outcomes: dict[str, Outcome]) 
     own_run = t.run_id != t.row.run_id  # else it is the launch's run, which its guard ends
     if res.failed:
         stage, msg = next(iter(res.failed.items()))
-        call(sink, "set_tags", t.run_id, {"gdwm.failed_stage": stage, "gdwm.error": msg})
-        call(sink, "log_text", t.run_id, msg, "error.txt")
+        tracking.set_tags(t.run_id, {"gdwm.failed_stage": stage, "gdwm.error": msg})
+        tracking.log_text(t.run_id, msg, "error.txt")
         if own_run:
-            call(sink, "end_run", t.run_id, "FAILED")
+            tracking.end_run(t.run_id, "FAILED")
         if layout.sweep is not None:
             console.print(f"[red]trial '{t.name}' failed at {stage}[/red]")
         return res
     links = {f"gdwm.stage_run.{n}": r.run_id for n, r in res.results.items() if r.run_id}
-    call(sink, "set_tags", t.run_id, links | {f"gdwm.stage_key.{n}": r.key for n, r in res.results.items()})
-    call(sink, "log_text", t.run_id, json.dumps(entry_keys(res.results), indent=1), CACHE_KEYS)
-    res.metrics = report_evaluation(sink, t.run_id, t.pipe, res.results)
+    tracking.set_tags(t.run_id, links | {f"gdwm.stage_key.{n}": r.key for n, r in res.results.items()})
+    tracking.log_text(t.run_id, json.dumps(entry_keys(res.results), indent=1), CACHE_KEYS)
+    res.metrics = report_evaluation(tracking, t.run_id, t.pipe, res.results)
     if layout.sweep is not None:
         # the zoo versions this trial's stages registered carry its sweep, trial and key metrics
         lineage = {"gdwm.sweep": layout.sweep.name, "gdwm.trial": t.run_id, "gdwm.row": t.label}
         lineage |= metric_tags({k: v for k, v in res.metrics.items() if not k.startswith("count/")})
-        call(sink, "tag_versions", [r.key for r in res.results.values()], lineage)
+        tracking.tag_versions([r.key for r in res.results.values()], lineage)
         console.print(f"[green]trial '{t.name}' finished[/green] ({len(res.metrics)} metrics)")
     if own_run and not res.blocked:
-        call(sink, "end_run", t.run_id, "FINISHED")
+        tracking.end_run(t.run_id, "FINISHED")
     return res
 
 
-def _finish_row(sink, layout: Layout, row: Row, results: list[TrialResult]) -> None:
+def _finish_row(tracking: TrackingClient, layout: Layout, row: Row, results: list[TrialResult]) -> None:
     """A row's aggregate over its finished seeds, on the row's run (when it is not its only trial's run)."""
     if all(r.trial.run_id == row.run_id for r in results):
         return
     agg = aggregate([r.metrics for r in results if r.ok])
     if agg:
-        call(sink, "log_metrics", row.run_id, agg)
+        tracking.log_metrics(row.run_id, agg)
     if layout.sweep is not None:
-        call(sink, "end_run", row.run_id, "FINISHED" if any(r.ok for r in results) else "FAILED")
+        tracking.end_run(row.run_id, "FINISHED" if any(r.ok for r in results) else "FAILED")
 
 
 # ---- gdwm run ----------------------------------------------------------------------------------------------------

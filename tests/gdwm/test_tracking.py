@@ -2,6 +2,7 @@
 
 import contextlib
 import dataclasses
+import inspect
 import os
 import pickle
 import shutil
@@ -25,12 +26,13 @@ from gdwm.tracking import (
     RunGuard,
     Tracker,
     TrackingBackend,
+    TrackingClient,
     batches,
-    call,
     flatten_params,
     open_tracking,
     process_owner,
 )
+from gdwm.tracking.backend import TrackingError
 
 EXPERIMENT = "gdwm-test"
 
@@ -241,7 +243,8 @@ def test_open_tracking_single_writer_needs_ray(cfg, monkeypatch):
 def test_two_tasks_log_through_one_tracking_actor(ray_local, cfg):
     sqlite_cfg = OmegaConf.create({**dataclasses.asdict(cfg), "system_metrics_interval_s": 0.2})
     sink, close = open_tracking(sqlite_cfg)
-    run_id = call(sink, "create_run", "stage", {"gdwm.stage": "distill"})
+    client = TrackingClient(sink)
+    run_id = client.create_run("stage", {"gdwm.stage": "distill"})
     tracker = Tracker(sink, run_id)
 
     @ray.remote(num_cpus=1)
@@ -256,14 +259,14 @@ def test_two_tasks_log_through_one_tracking_actor(ray_local, cfg):
         return errors
 
     assert ray.get([log_300.remote(tracker, "a"), log_300.remote(tracker, "b")]) == [[], []]
-    call(sink, "end_run", run_id)
-    assert call(sink, "metric_history", run_id, "a/loss") == [(s, s * 0.5) for s in range(300)]
-    assert len(call(sink, "metric_history", run_id, "b/loss")) == 300
-    run = call(sink, "search_runs", f"attributes.run_id = '{run_id}'")[0]
+    client.end_run(run_id)
+    assert client.metric_history(run_id, "a/loss") == [(s, s * 0.5) for s in range(300)]
+    assert len(client.metric_history(run_id, "b/loss")) == 300
+    run = client.search_runs(f"attributes.run_id = '{run_id}'")[0]
     assert run["status"] == "FINISHED"
     assert run["tags"][OWNER_TAG] == process_owner()  # the driver's, not the actor's
     # A stage run: system metrics were sampled in the actor, the only writer, while the tasks ran.
-    assert len(call(sink, "metric_history", run_id, "system/cpu_utilization_percentage")) >= 1
+    assert len(client.metric_history(run_id, "system/cpu_utilization_percentage")) >= 1
     close()
     close()  # idempotent
     with pytest.raises(ray.exceptions.RayActorError):
@@ -284,6 +287,89 @@ def test_tracker_flush_raises_the_actors_error(ray_local, cfg):
         tracker.flush()  # the failed calls are not re-raised
     finally:
         close()
+
+
+# -- the typed client -----------------------------------------------------------------------------------------------
+
+# Called by open_tracking and by the backend itself, never through a client.
+BACKEND_ONLY = {"ready", "close", "start_system_metrics", "stop_system_metrics"}
+
+
+def test_tracking_client_has_every_backend_method_with_its_signature():
+    backend_methods = {n for n, f in vars(TrackingBackend).items() if callable(f) and not n.startswith("_")}
+    client_methods = {n for n, f in vars(TrackingClient).items() if callable(f) and not n.startswith("_")}
+    assert client_methods == backend_methods - BACKEND_ONLY
+    for name in sorted(client_methods):
+        expected = inspect.signature(getattr(TrackingBackend, name))
+        # ray.remote(TrackingBackend) gives the class's methods a keyword-only _ray_trace_ctx.
+        expected = expected.replace(parameters=[p for p in expected.parameters.values() if p.name != "_ray_trace_ctx"])
+        assert inspect.signature(getattr(TrackingClient, name)) == expected, name
+
+
+@ray.remote(num_cpus=0)
+def _log_from_a_task(client: TrackingClient, run_id: str) -> None:
+    client.log_metrics(run_id, {"from_task": 2.0}, step=7)
+
+
+def exercise(client: TrackingClient, artifact: Path) -> dict:
+    """Every client method a driver uses on runs, and what the store holds afterwards."""
+    parent = client.create_run("sweep", {"gdwm.sweep": "ablation"})
+    run_id = client.create_run("trial", {"gdwm.row": "0"}, parent)
+    client.log_params(run_id, {"lr": 0.1, "model": {"depth": 2}})
+    for step in range(3):
+        client.log_metrics(run_id, {"loss": 1.0 / (step + 1)}, step=step, timestamp_ms=1000 + step)
+    client.set_tags(run_id, {"gdwm.cache_key": "abc123"})
+    client.log_text(run_id, "hello", "notes/readme.txt")
+    client.log_artifact(run_id, str(artifact), "out")
+    client.end_run(run_id, "FAILED")
+    client.reopen_run(run_id)
+    # The client pickles: a task gets a working copy (the actor's handle, or a backend that reconnects).
+    ray.get(_log_from_a_task.remote(pickle.loads(pickle.dumps(client)), run_id))
+    client.end_run(run_id)
+    killed = client.reconcile(lambda owner: False)
+    run = client.search_runs(f"attributes.run_id = '{run_id}'")[0]
+    return {
+        "status": run["status"],
+        "params": run["params"],
+        "metrics": run["metrics"],
+        "tags": {k: v for k, v in run["tags"].items() if k.startswith("gdwm.")},
+        "nested": run["tags"][MLFLOW_PARENT_RUN_ID] == parent,
+        "loss": client.metric_history(run_id, "loss"),
+        "from_task": client.metric_history(run_id, "from_task"),
+        "killed_parent": killed == [parent],
+        "runs": sorted((r["name"], r["status"]) for r in client.search_runs()),
+    }
+
+
+def test_tracking_client_gives_the_same_results_in_process_and_through_the_actor(ray_local, cfg, tmp_path):
+    artifact = tmp_path / "manifest.json"
+    artifact.write_text('{"key": "abc123"}')
+    local_cfg = dataclasses.replace(cfg, uri=f"sqlite:///{tmp_path}/local.db")
+    shutil.copy(tmp_path / "mlflow.db", tmp_path / "local.db")
+    local = TrackingClient(TrackingBackend(local_cfg.uri, local_cfg.experiment, local_cfg.artifact_location))
+    actor, close = open_tracking(cfg)
+    remote = TrackingClient(actor)
+    try:
+        in_process = exercise(local, artifact)
+        assert exercise(remote, artifact) == in_process
+        with pytest.raises(ValueError, match="end status must be one of"):
+            local.end_run(local.create_run("x", {}), "DONE")
+        with pytest.raises(TrackingError, match=r"^tracking store write failed: .*end status must be one of"):
+            remote.end_run(remote.create_run("x", {}), "DONE")
+    finally:
+        close()
+        local.sink.close()
+    assert in_process == {
+        "status": "FINISHED",
+        "params": {"lr": "0.1", "model.depth": "2"},
+        "metrics": {"loss": 1.0 / 3, "from_task": 2.0},
+        "tags": {"gdwm.row": "0", "gdwm.owner": process_owner(), "gdwm.cache_key": "abc123"},
+        "nested": True,
+        "loss": [(0, 1.0), (1, 0.5), (2, 1.0 / 3)],
+        "from_task": [(7, 2.0)],
+        "killed_parent": True,
+        "runs": [("sweep", "KILLED"), ("trial", "FINISHED")],
+    }
 
 
 # -- no run left RUNNING --------------------------------------------------------------------------------------------

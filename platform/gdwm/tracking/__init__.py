@@ -1,6 +1,6 @@
-"""MLflow tracking: one backend class talks to MLflow; with sqlite it lives in one Ray actor,
-the single writer; stages log through a ``Tracker`` bound to their run; ``RunGuard`` and ``reconcile``
-make sure no run is left RUNNING."""
+"""MLflow tracking: one backend class talks to MLflow; with sqlite it lives in one Ray actor, the single
+writer; the driver calls it through a ``TrackingClient``, stages log through a ``Tracker`` bound to their run;
+``RunGuard`` and ``reconcile`` make sure no run is left RUNNING."""
 
 from gdwm.tracking.backend import (
     DEFAULT_SYSTEM_METRICS_INTERVAL_S,
@@ -8,9 +8,9 @@ from gdwm.tracking.backend import (
     Sink,
     TrackingActor,
     TrackingBackend,
-    call,
     open_tracking,
 )
+from gdwm.tracking.client import TrackingClient
 from gdwm.tracking.guard import RunGuard
 from gdwm.tracking.owner import (
     OWNER_TAG,
@@ -34,8 +34,8 @@ __all__ = [
     "Tracker",
     "TrackingActor",
     "TrackingBackend",
+    "TrackingClient",
     "batches",
-    "call",
     "flatten_params",
     "open_tracking",
     "owner_is_alive",

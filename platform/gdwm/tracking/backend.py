@@ -9,7 +9,7 @@ import time
 import uuid
 from collections.abc import Callable, Mapping
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, TypeVar
 
 import ray
 from filelock import FileLock
@@ -44,7 +44,10 @@ DEFAULT_SYSTEM_METRICS_INTERVAL_S = 10.0
 _PAGE = 1000
 
 
-def _one_writer(cls: type) -> type:
+_C = TypeVar("_C", bound=type)
+
+
+def _one_writer(cls: _C) -> _C:
     """Every public method (and the connection, which creates or migrates the schema) runs holding the store's
     file lock when the store is a sqlite file: two drivers on one workdir never write it at once, and the second
     to start finds the schema complete instead of racing the first one's migration."""
@@ -281,16 +284,6 @@ Sink = TrackingBackend | ActorHandle
 
 class TrackingError(RuntimeError):
     """The tracking store cannot be reached or its actor died; the message is one line naming it."""
-
-
-def call(sink: Sink, method: str, *args, **kwargs) -> Any:
-    """``sink.method(*args)`` on a backend, or the same on the actor, waiting for its result."""
-    if isinstance(sink, ActorHandle):
-        try:
-            return ray.get(getattr(sink, method).remote(*args, **kwargs))
-        except ray.exceptions.RayError as e:  # the actor died, or the store refused the write (a full disk...)
-            raise TrackingError(f"tracking store write failed: {one_line(e)}") from e
-    return getattr(sink, method)(*args, **kwargs)
 
 
 def _field(cfg: Any, name: str, default: Any) -> Any:

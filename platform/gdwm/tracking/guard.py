@@ -11,7 +11,8 @@ import traceback
 from types import FrameType, TracebackType
 
 from gdwm.errors import one_line
-from gdwm.tracking.backend import Sink, TrackingError, call
+from gdwm.tracking.backend import Sink, TrackingError
+from gdwm.tracking.client import TrackingClient
 from gdwm.tracking.tracker import Tracker
 
 log = logging.getLogger(__name__)
@@ -39,7 +40,7 @@ class RunGuard:
     handler runs (default SIGTERM: ``SystemExit(143)``); the previous handlers come back when the last closes."""
 
     def __init__(self, sink: Sink, run_id: str):
-        self.sink = sink
+        self.client = TrackingClient(sink)
         self.run_id = run_id
         self.tracker = Tracker(sink, run_id)
         self.status: str | None = None
@@ -93,8 +94,8 @@ class RunGuard:
         self.status = status
         try:
             if error_text is not None:
-                call(self.sink, "log_text", self.run_id, error_text, "error.txt")
-            call(self.sink, "end_run", self.run_id, status)
+                self.client.log_text(self.run_id, error_text, "error.txt")
+            self.client.end_run(self.run_id, status)
         except Exception:
             # A store that can't be written (TrackingError) is reported once, by the driver; anything else here.
             level = logging.INFO if isinstance(sys.exc_info()[1], TrackingError) else logging.WARNING

@@ -3,17 +3,19 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Callable, Mapping
+from typing import Any, Concatenate, ParamSpec
 
 import ray
 from ray.actor import ActorHandle
 
-from gdwm.tracking.backend import Sink
+from gdwm.tracking.backend import Sink, TrackingBackend
 from gdwm.tracking.params import flatten_params
 
 # Waiting on the oldest calls beyond this many bounds memory and applies back-pressure on a slow store.
 MAX_PENDING = 1000
+
+P = ParamSpec("P")
 
 
 class Tracker:
@@ -38,32 +40,36 @@ class Tracker:
     def remote(self) -> bool:
         return isinstance(self.sink, ActorHandle)
 
-    def _send(self, method: str, *args) -> None:
+    def _send(
+        self, method: Callable[Concatenate[TrackingBackend, str, P], None], *args: P.args, **kwargs: P.kwargs
+    ) -> None:
         if not self.remote:
-            getattr(self.sink, method)(self.run_id, *args)
+            method(self.sink, self.run_id, *args, **kwargs)
             return
-        self._pending.append(getattr(self.sink, method).remote(self.run_id, *args))
+        self._pending.append(getattr(self.sink, method.__name__).remote(self.run_id, *args, **kwargs))
         if len(self._pending) >= MAX_PENDING:
             self.flush()
 
     def log_params(self, params: Mapping[str, Any]) -> None:
-        self._send("log_params", flatten_params(params))
+        self._send(TrackingBackend.log_params, flatten_params(params))
 
     def log_metrics(self, metrics: Mapping[str, float], step: int | None = None) -> None:
         # Stamped here, not when the actor gets to it.
-        self._send("log_metrics", {k: float(v) for k, v in metrics.items()}, step, int(time.time() * 1000))
+        self._send(
+            TrackingBackend.log_metrics, {k: float(v) for k, v in metrics.items()}, step, int(time.time() * 1000)
+        )
 
     def set_tags(self, tags: Mapping[str, str]) -> None:
-        self._send("set_tags", {k: str(v) for k, v in tags.items()})
+        self._send(TrackingBackend.set_tags, {k: str(v) for k, v in tags.items()})
 
     def log_artifact(self, path: str, artifact_path: str | None = None) -> None:
         """Copied before returning (the caller may delete ``path`` next). Through the actor, ``path`` must be
         readable on the driver's node (local Ray or a shared filesystem)."""
-        self._send("log_artifact", str(path), artifact_path)
+        self._send(TrackingBackend.log_artifact, str(path), artifact_path)
         self.flush()
 
     def log_text(self, text: str, artifact_file: str) -> None:
-        self._send("log_text", text, artifact_file)
+        self._send(TrackingBackend.log_text, text, artifact_file)
 
     def flush(self) -> None:
         """Wait until every queued call has been written; raises the first error the actor hit."""
