@@ -3,28 +3,27 @@
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
-import pkgutil
 import sys
+from importlib.metadata import EntryPoint, entry_points
 from pathlib import Path
 
 from rich.table import Table
 
-import benchmarks
+from gdwm.regress import BENCHMARK_GROUP
 from gdwm.term import console
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def discover() -> list[str]:
-    return sorted(
-        m.name[len("bench_") :] for m in pkgutil.iter_modules(benchmarks.__path__) if m.name.startswith("bench_")
-    )
+def discover() -> dict[str, EntryPoint]:
+    """The registered benchmarks by name (pyproject.toml, entry-point group ``gdwm.benchmarks``: ``module:run``)."""
+    return {ep.name: ep for ep in sorted(entry_points(group=BENCHMARK_GROUP), key=lambda e: e.name)}
 
 
 def main(argv: list[str] | None = None) -> int:
-    names = discover()
+    registered = discover()
+    names = list(registered)
     ap = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
     ap.add_argument("names", nargs="*", help=f"benchmarks to run (default all): {', '.join(names)}")
     ap.add_argument("--quick", action="store_true", help="fewer repeats and smaller sizes (smoke run)")
@@ -35,8 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for name in args.names or names:
         console.print(f"[bold]running {name}[/bold]")
-        mod = importlib.import_module(f"benchmarks.bench_{name}")
-        results += mod.run(quick=args.quick)
+        results += registered[name].load()(quick=args.quick)
     table = Table(title="gdwm benchmarks", header_style="bold")
     for col in ("benchmark", "metric", "value", "target", "verdict", "detail"):
         table.add_column(col)

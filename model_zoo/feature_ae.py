@@ -5,7 +5,8 @@ feature before rendering. Both halves are small MLPs applied per feature (no bat
 decoded feature never depends on which other Gaussians share its batch.
 
 Variants: ``feature_tokenizer/foundation`` (``d_z`` configurable, default 16) and ``feature_tokenizer/langsplat3``
-(``d_z = 3``, the width of the public GaussianDWM release's ``_language_feature`` codes).
+(``d_z = 3``, the width of the public GaussianDWM release's ``_language_feature`` codes). A variant is a class:
+``registry.get("feature_tokenizer", name).configure(d_f, d_z, hidden)`` is the config it trains with.
 
 Legend: ``N`` features, ``C`` = ``d_f``, ``Z`` = ``d_z``.
 """
@@ -13,6 +14,7 @@ Legend: ``N`` features, ``C`` = ``d_f``, ``Z`` = ``d_z``.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import torch
 from torch import nn
@@ -110,17 +112,33 @@ def fit_autoencoder(
 
 
 @register("feature_tokenizer", "foundation")
-def build_foundation(cfg: FeatureAEConfig | None = None) -> FeatureAutoencoder:
-    """Compact foundation-feature autoencoder; ``FeatureAEConfig()`` (64 -> 16) is its tiny flavor."""
-    return FeatureAutoencoder(FeatureAEConfig() if cfg is None else cfg)
+class FoundationTokenizer(FeatureAutoencoder):
+    """Compact foundation-feature autoencoder, ``d_z`` a setting; ``FeatureAEConfig()`` (64 -> 16) is its tiny
+    flavor."""
+
+    fixed_d_z: ClassVar[int | None] = None
+    """The code width the variant fixes, or None where ``d_z`` is the caller's."""
+
+    def __init__(self, cfg: FeatureAEConfig | None = None) -> None:
+        super().__init__(self.configure() if cfg is None else replace(cfg))
+
+    @classmethod
+    def configure(
+        cls, d_f: int = FeatureAEConfig.d_f, d_z: int = FeatureAEConfig.d_z, hidden: int = FeatureAEConfig.hidden
+    ) -> FeatureAEConfig:
+        """The variant's config for ``d_f``-dim features: ``d_z`` as asked, unless the variant fixes its own."""
+        return FeatureAEConfig(d_f=d_f, d_z=d_z if cls.fixed_d_z is None else cls.fixed_d_z, hidden=hidden)
 
 
 @register("feature_tokenizer", "langsplat3")
-def build_langsplat3(cfg: FeatureAEConfig | None = None) -> FeatureAutoencoder:
+class LangSplat3Tokenizer(FoundationTokenizer):
     """3-dim codes, the width of the public release's ``_language_feature``; ``d_z`` is fixed to 3."""
-    cfg = FeatureAEConfig(d_z=3) if cfg is None else cfg
-    if cfg.d_z != 3:
-        raise ValueError(
-            f"feature_tokenizer/langsplat3: d_z is fixed to 3 (the release's _language_feature), got {cfg.d_z}"
-        )
-    return FeatureAutoencoder(replace(cfg))
+
+    fixed_d_z = 3
+
+    def __init__(self, cfg: FeatureAEConfig | None = None) -> None:
+        if cfg is not None and cfg.d_z != self.fixed_d_z:
+            raise ValueError(
+                f"feature_tokenizer/langsplat3: d_z is fixed to 3 (the release's _language_feature), got {cfg.d_z}"
+            )
+        super().__init__(cfg)

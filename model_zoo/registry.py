@@ -5,27 +5,22 @@
 
     model = build("encoder", "daisy", cfg)
 
-Adding a variant is one module that registers itself plus one YAML under ``conf/model/<component>/``.
+Adding a variant is one module that registers itself plus one YAML under ``conf/model/<component>/``: the registry
+finds every module of ``model_zoo`` whose source registers a variant and imports those on the first lookup, so
+importing ``model_zoo`` stays cheap and no list of modules is kept by hand.
 """
 
 from __future__ import annotations
 
 import importlib
 from collections.abc import Callable
+from functools import cache
+from pathlib import Path
 from typing import Any
 
 _BUILDERS: dict[tuple[str, str], Callable[..., Any]] = {}
-# Modules that register the shipped variants; imported on first lookup so importing model_zoo stays cheap.
-_SHIPPED: tuple[str, ...] = (
-    "model_zoo.encoders.daisy",
-    "model_zoo.encoders.qwen3_vl_vision",
-    "model_zoo.feature_ae",
-    "model_zoo.llm.qwen3_vl",
-    "model_zoo.adapter",
-    "model_zoo.alignment",
-    "model_zoo.selectors",
-    "model_zoo.diffusion.rgbd_dual",
-)
+_MARK = "@register("
+"""What a registering module's source holds: modules without it are never imported by the lookup."""
 
 
 class UnknownVariant(KeyError):
@@ -46,8 +41,21 @@ def register(component: str, name: str) -> Callable[[Callable[..., Any]], Callab
     return wrap
 
 
+def shipped_modules() -> list[str]:
+    """The modules of ``model_zoo`` that register variants (their source holds ``@register(``), sorted."""
+    root = Path(__file__).parent
+    out = []
+    for path in sorted(root.rglob("*.py")):
+        if path.name == Path(__file__).name or _MARK not in path.read_text(encoding="utf-8"):
+            continue
+        parts = path.relative_to(root).with_suffix("").parts
+        out.append(".".join((__package__, *(parts[:-1] if parts[-1] == "__init__" else parts))))
+    return out
+
+
+@cache
 def _load_shipped() -> None:
-    for module in _SHIPPED:
+    for module in shipped_modules():
         importlib.import_module(module)
 
 

@@ -11,10 +11,29 @@ Legend: ``H, W`` image size, ``h, w`` encoder grid size, ``C`` feature channels 
 from __future__ import annotations
 
 import abc
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
+
+
+@dataclass
+class EncoderSettings:
+    """What a pipeline sets of whichever encoder it picks: ``registry.build("encoder", name, EncoderSettings(...))``.
+
+    Each variant's builder takes the fields its own config has and keeps its defaults for the rest, so the caller
+    never branches on the name; a variant's own config (``DaisyConfig``, ...) is still accepted for every knob.
+    """
+
+    d_f: int = 64
+    """Feature dimension, for variants that choose theirs (a checkpoint fixes the Qwen tower's)."""
+    seed: int = 0
+    """Seed of the fixed random projection, for variants whose projection follows the run's seed."""
+    path: str | None = None
+    """Local checkpoint directory, for variants that load one."""
+    tiny: bool = False
+    """The variant's tiny random flavor (tests, smoke runs), for variants that have one."""
 
 
 def as_rgb_uint8(rgb_HW3: np.ndarray | torch.Tensor, who: str) -> np.ndarray:

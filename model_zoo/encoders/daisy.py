@@ -18,7 +18,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from model_zoo.encoders.base import FoundationEncoder, upsample_grid
+from model_zoo.encoders.base import EncoderSettings, FoundationEncoder, upsample_grid
 from model_zoo.registry import register
 
 
@@ -124,6 +124,8 @@ class DaisyEncoder(FoundationEncoder):
 
 
 @register("encoder", "daisy")
-def build_daisy(cfg: DaisyConfig | None = None) -> DaisyEncoder:
+def build_daisy(cfg: DaisyConfig | EncoderSettings | None = None) -> DaisyEncoder:
     """The DAISY encoder; ``DaisyConfig()`` is its tiny/CPU flavor."""
+    if isinstance(cfg, EncoderSettings):
+        cfg = DaisyConfig(d_f=cfg.d_f, seed=cfg.seed)
     return DaisyEncoder(DaisyConfig() if cfg is None else cfg)

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from model_zoo.encoders.base import FoundationEncoder
+from model_zoo.encoders.base import EncoderSettings, FoundationEncoder
 from model_zoo.encoders.daisy import orthogonal_projection
 from model_zoo.registry import register
 
@@ -106,6 +106,8 @@ class LangSplatProxyEncoder(FoundationEncoder):
 
 
 @register("encoder", "langsplat_proxy")
-def build_langsplat_proxy(cfg: LangSplatProxyConfig | None = None) -> LangSplatProxyEncoder:
+def build_langsplat_proxy(cfg: LangSplatProxyConfig | EncoderSettings | None = None) -> LangSplatProxyEncoder:
     """The LangSplat stand-in; ``LangSplatProxyConfig()`` is its CPU flavor."""
+    if isinstance(cfg, EncoderSettings):  # the lift keeps its own seed, so it never shares daisy's projection
+        cfg = LangSplatProxyConfig(d_f=cfg.d_f)
     return LangSplatProxyEncoder(LangSplatProxyConfig() if cfg is None else cfg)

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from model_zoo.encoders.base import FoundationEncoder, upsample_grid
+from model_zoo.encoders.base import EncoderSettings, FoundationEncoder, upsample_grid
 from model_zoo.registry import register
 
 EXPECTED_FILES = "config.json and model.safetensors (or model.safetensors.index.json with the shards it lists)"
@@ -234,8 +234,10 @@ class QwenVisionEncoder(FoundationEncoder):
 
 
 @register("encoder", "qwen3_vl_vision")
-def build_qwen3_vl_vision(cfg: QwenVisionConfig | None = None) -> QwenVisionEncoder:
+def build_qwen3_vl_vision(cfg: QwenVisionConfig | EncoderSettings | None = None) -> QwenVisionEncoder:
     """The tower from ``cfg.path``, or the tiny random flavor with ``tiny=True``."""
+    if isinstance(cfg, EncoderSettings):  # d_f is the checkpoint's
+        cfg = QwenVisionConfig(path=cfg.path, tiny=cfg.tiny)
     cfg = QwenVisionConfig() if cfg is None else cfg
     if cfg.tiny:
         from transformers.models.qwen3_vl.modeling_qwen3_vl import Qwen3VLVisionModel

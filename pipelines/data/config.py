@@ -15,13 +15,17 @@ class DatasetConfig:
     """Where the published dataset lives (a local directory)."""
     builder: str = "???"
     """Dotted path of ``build(cfg, root, source, overwrite) -> Path`` that produces this dataset."""
+    build_command: str | None = None
+    """The command that builds it (``gdwm data <sub>``, registered in ``pipelines.commands``): what gdwm's messages
+    about a missing or mismatched dataset tell the user to run."""
     needs_source: bool = True
     """Whether ``build`` reads an input directory (``source=``); one that does not is generated on demand."""
     planner: str | None = None
     """Dotted path of ``plan(cfg) -> list[str]``: checks the ``data.*`` keys and returns the scene ids ``build``
     would write, writing nothing (a dry run's plan; a bad key is exit 2 before anything is generated)."""
-    summarizer: str = "pipelines.data.summary.summarize"
-    """Dotted path of ``summarize(root) -> dict`` used by ``gdwm data info``."""
+    summarizer: str = "pipelines.data.summary.render"
+    """Dotted path of ``render(root) -> list`` of lines and rich tables: the dataset's summary, which gdwm prints
+    (``gdwm data info``, and after a build)."""
     tables: list[str] = field(default_factory=list)
     """What a dataset of this option holds (tables, per-scene file kinds such as ``images``; see
     ``layout.held_tables``) before it exists: a dry run of a dataset generated on demand checks the stages' needs

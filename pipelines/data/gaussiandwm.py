@@ -79,6 +79,8 @@ class ReleaseConfig(DatasetConfig):
     """Dataset name; also the folder under ``<workdir>/data/``."""
     builder: str = "pipelines.data.gaussiandwm.build"
     """Dotted path of the importer."""
+    build_command: str | None = "gdwm data import-gaussiandwm"
+    """Imports it from ``source=DIR``."""
     gauss_glob: str = "gauss/**/*.pth"
     """Glob (relative to the source) of the per-frame Gaussian ``.pth`` files to import."""
     records_glob: str = "**/*.jsonl"

@@ -52,6 +52,8 @@ class NuScenesConfig(DatasetConfig):
     """Dataset name; also the folder under ``<workdir>/data/``."""
     builder: str = "pipelines.data.nuscenes.build"
     """Dotted path of the converter."""
+    build_command: str | None = "gdwm data convert-nuscenes"
+    """Converts it from ``source=DIR``."""
     version: str = "v1.0-mini"
     """Table folder under the source: ``v1.0-mini`` or ``v1.0-trainval``."""
     cameras: list[str] = field(default_factory=lambda: list(CAMERAS))

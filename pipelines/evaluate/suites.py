@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field
 from fnmatch import fnmatchcase
 from typing import Any
 
-from gdwm.compare.rounding import mean_of_printed
+from gdwm.api import mean_of_printed
 from pipelines.evaluate.config import Suite, SuiteMapping
 from pipelines.evaluate.grounding import Scored, score_2d, score_3d
 from pipelines.evaluate.planning import decision_accuracy, regression_mae

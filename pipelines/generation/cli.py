@@ -58,7 +58,7 @@ class EditArgs:
 
 def _require(value: Any, key: str) -> Any:
     if value in (None, ""):
-        from gdwm.errors import CommandError
+        from gdwm.api import CommandError
 
         raise CommandError(f"{key} is required")
     return value
@@ -78,8 +78,7 @@ def _runtime(cfg) -> Runtime:
     """Run (or hit the cache of) everything ``diffusion`` needs; load what generation uses."""
     from omegaconf import OmegaConf
 
-    from gdwm.errors import CommandError
-    from gdwm.runner import run_pipeline
+    from gdwm.api import CommandError, run_pipeline
     from model_zoo.diffusion.rgbd_dual import RGBDDual
     from pipelines.data.reader import GSQADataset
     from pipelines.understanding.model import load_world_model
@@ -106,7 +105,7 @@ def _runtime(cfg) -> Runtime:
 
 def _condition(rt: Runtime, prompts: list) -> tuple[Any, Any]:
     """C_L for each prompt (``QASample``), padded; (None, None) when the high-level condition is off."""
-    from pipelines.stages.diffusion import conditions_of, pad_tokens
+    from pipelines.generation.examples import conditions_of, pad_tokens
 
     return pad_tokens(conditions_of(rt.world, rt.ds, rt.distill_dirs, prompts, len(prompts) or 1))
 
@@ -160,7 +159,7 @@ def write_mp4(path: Path, frames_3HW: list, fps: float) -> None:
 
 def _log(cfg, kind: str, name: str, out_dir: Path, params: dict, metrics: dict) -> str:
     """One MLflow run (``gdwm.kind``) with every file of ``out_dir`` as artifacts; this process is the only writer."""
-    from gdwm.tracking import TrackingBackend
+    from gdwm.api import TrackingBackend
 
     backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
     try:
@@ -181,7 +180,7 @@ def _log(cfg, kind: str, name: str, out_dir: Path, params: dict, metrics: dict) 
 
 def generate(cfg, _argv: list[str]) -> int:
     """generate shifted / future views of a frame (args.scene, args.frame, args.shifts_m, args.horizons_s)"""
-    from gdwm.term import console
+    from gdwm.api import console
     from pipelines.generation.conditions import horizon_frames
     from pipelines.generation.samples import GenTarget, build_example, frame_gaussians
 
@@ -189,7 +188,7 @@ def generate(cfg, _argv: list[str]) -> int:
     scene = _require(a.scene, "args.scene")
     rt = _runtime(cfg)
     if scene not in rt.rec_dirs:
-        from gdwm.errors import CommandError
+        from gdwm.api import CommandError
 
         raise CommandError(f"args.scene: no reconstruction of '{scene}' (scenes: {sorted(rt.rec_dirs)})")
     rate = float(rt.ds.scene(scene).info["frame_rate_hz"])
@@ -198,7 +197,7 @@ def generate(cfg, _argv: list[str]) -> int:
         h = horizon_frames(s, rate)
         targets.append(GenTarget(scene, a.frame, a.camera, "future", horizon_frames=h, horizon_s=float(s)))
     if not targets:
-        from gdwm.errors import CommandError
+        from gdwm.api import CommandError
 
         raise CommandError("args.shifts_m and args.horizons_s are both empty: nothing to generate")
     gaussians = frame_gaussians(rt.rec_dirs[scene], scene, a.frame)
@@ -239,8 +238,7 @@ def edit(cfg, _argv: list[str]) -> int:
     import torch
     from scipy.ndimage import binary_dilation
 
-    from gdwm.errors import CommandError
-    from gdwm.term import console
+    from gdwm.api import CommandError, console
     from pipelines.generation.edits import ReferenceFrame, Weather, edit_instruction, parse_edit
     from pipelines.generation.samples import GenTarget, build_example, edited_example, frame_gaussians, stack
 

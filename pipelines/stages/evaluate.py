@@ -24,7 +24,7 @@ import ray
 import torch
 from ray.util import ActorPool
 
-from gdwm.stage import StageContext, stage
+from gdwm.api import StageContext, stage
 from pipelines.data.reader import GSQADataset
 from pipelines.evaluate.config import FUTURE_POSES, EvaluateGenConfig, EvaluateQAConfig
 from pipelines.evaluate.suites import score_predictions, score_table, with_mapping
@@ -110,11 +110,11 @@ def evaluate_qa(ctx: StageContext) -> dict:
        resources="eval", evaluation=True, seeded=True, needs=VIEW_TARGETS)  # fmt: skip
 def evaluate_gen(ctx: StageContext) -> dict:
     from model_zoo.diffusion.rgbd_dual import RGBDDual
+    from pipelines.generation.examples import build_examples, conditions_of, pad_tokens, save_grid, split_scenes
     from pipelines.generation.frechet import build_extractor, build_video_extractor, label
     from pipelines.generation.metrics import PROTOCOL, score_views
     from pipelines.generation.samples import enumerate_targets, stack
     from pipelines.generation.trajectory import predicted_future_targets
-    from pipelines.stages.diffusion import build_examples, conditions_of, pad_tokens, save_grid, split_scenes
 
     cfg = EvaluateGenConfig(**ctx.cfg("stage.evaluate_gen"))
     if cfg.future_poses not in FUTURE_POSES:

@@ -24,7 +24,7 @@ from dataclasses import asdict
 
 import torch
 
-from gdwm.stage import StageContext, stage
+from gdwm.api import StageContext, stage
 from model_zoo.feature_ae import FeatureAEConfig, FeatureAutoencoder
 from pipelines.data.layout import gaussians_relpath
 from pipelines.data.reader import GSQADataset, gaussians_from_table, read_arrow

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 
-from gdwm.stage import StageContext, stage
+from gdwm.api import StageContext, stage
 from model_zoo import registry
 from model_zoo.config import LLMConfig
 from pipelines.data.reader import GSQADataset

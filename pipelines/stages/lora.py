@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from gdwm.stage import StageContext, stage
+from gdwm.api import StageContext, stage
 from pipelines.understanding.config import LoraStageConfig
 from pipelines.understanding.model import load_world_model
 from pipelines.understanding.stage_common import (

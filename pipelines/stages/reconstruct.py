@@ -18,7 +18,7 @@ from dataclasses import asdict
 import numpy as np
 import torch
 
-from gdwm.stage import StageContext, stage
+from gdwm.api import StageContext, stage
 from pipelines.data.layout import gaussians_relpath, gaussians_table, transform_gaussians, write_arrow
 from pipelines.data.reader import GSQADataset
 from pipelines.recon.config import ReconstructConfig

@@ -9,7 +9,7 @@ and is saved with the model, so every later stage reads the same one. Output: a 
 
 from __future__ import annotations
 
-from gdwm.stage import StageContext, stage
+from gdwm.api import StageContext, stage
 from model_zoo.llm.qwen3_vl import WorldLLM
 from pipelines.understanding.config import TokenizerStageConfig
 from pipelines.understanding.model import LLM_DIR, WORLD_FILE, build_world_model, load_world_model

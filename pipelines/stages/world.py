@@ -28,14 +28,15 @@ from dataclasses import asdict
 
 import torch
 
-from gdwm.stage import StageContext, stage
+from gdwm.api import StageContext, stage
 from model_zoo.diffusion.rgbd_dual import DiffusionConfig, RGBDDual
 from pipelines.data.reader import GSQADataset
 from pipelines.evaluate.config import EvaluateGenConfig
 from pipelines.generation.config import DiffusionStageConfig, VaeStageConfig
+from pipelines.generation.examples import pad_tokens, save_grid
 from pipelines.generation.samples import stack
+from pipelines.generation.train import MODEL, diffusion_config, fit_vae, train_dual, zoo_variant
 from pipelines.generation.world import KIND, clip_conditions, split_samples, vae_images, world_clips
-from pipelines.stages.diffusion import MODEL, diffusion_config, fit_vae, pad_tokens, save_grid, train_dual, zoo_variant
 from pipelines.understanding.model import load_world_model
 
 NOT_COMPUTED = {

@@ -5,13 +5,12 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Mapping
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from gdwm.stage import StageContext
+from gdwm.api import StageContext
 from pipelines.data.reader import GSQADataset
-from pipelines.understanding.config import TrainConfig
+from pipelines.understanding.config import LoraStageConfig, TrainConfig
 from pipelines.understanding.data import FrameStore, QASample, row_samples, task_counts
 from pipelines.understanding.infer import write_predictions
 from pipelines.understanding.model import Components, WorldModel, load_world_model
@@ -68,7 +67,8 @@ def training_samples(ctx: StageContext, scene_dirs: dict[str, Path]) -> list[QAS
 def run_training(
     ctx: StageContext, stage: str, init_dir: Path, cfg: TrainConfig, scene_dirs: dict[str, Path]
 ) -> WorldModel:
-    """Train from ``init_dir`` under Ray Train and return the model with the final state loaded."""
+    """Train from ``init_dir`` under Ray Train and return the model with the final state loaded; a
+    ``LoraStageConfig`` adds its LoRA (the config travels to the workers as it is: a dataclass pickles)."""
     result = ctx.train(
         train_loop,
         {
@@ -76,15 +76,13 @@ def run_training(
             "init_dir": str(init_dir),
             "data_root": str(ctx.data_root),
             "scene_dirs": {k: str(v) for k, v in scene_dirs.items()},
-            "train": asdict(cfg),
+            "train": cfg,
             "seed": ctx.seed,
         },
     )
     model = load_world_model(init_dir)
-    if stage == "lora":
-        from pipelines.understanding.config import LoraStageConfig
-
-        model.add_lora(LoraStageConfig(**asdict(cfg)))
+    if isinstance(cfg, LoraStageConfig):
+        model.add_lora(cfg)
     if result.state is None:
         raise RuntimeError(f"{stage}: training reported no checkpoint")
     model.load_adapter_state(result.state["adapter"])

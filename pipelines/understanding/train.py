@@ -14,7 +14,7 @@ import ray.train
 import ray.train.torch
 import torch
 
-from gdwm.training import TrainSession, warmup_cosine_lr
+from gdwm.api import TrainSession, warmup_cosine_lr
 from pipelines.data.reader import GSQADataset
 from pipelines.understanding.config import LoraStageConfig, TrainConfig
 from pipelines.understanding.data import FrameStore, QASample, TaskSampler, row_samples
@@ -24,23 +24,22 @@ from pipelines.understanding.model import WorldModel, autocast, load_world_model
 log = logging.getLogger(__name__)
 
 
-def open_model(c: dict) -> WorldModel:
-    """The model a stage starts from: its init dir, plus LoRA for the lora stage."""
-    model = load_world_model(Path(c["init_dir"]))
+def open_model(init_dir: Path, cfg: TrainConfig) -> WorldModel:
+    """The model a stage starts from: its init dir, plus LoRA for the lora stage (``cfg`` a ``LoraStageConfig``)."""
+    model = load_world_model(init_dir)
     model.freeze_llm()
-    if c["stage"] == "lora":
-        model.add_lora(LoraStageConfig(**c["train"]))
+    if isinstance(cfg, LoraStageConfig):
+        model.add_lora(cfg)
         model.freeze_llm()
     return model
 
 
 def train_loop(s: TrainSession) -> None:
     c = s.config
-    kind = LoraStageConfig if c["stage"] == "lora" else TrainConfig
-    cfg = kind(**{k: v for k, v in c["train"].items() if k in kind.__dataclass_fields__})
+    cfg: TrainConfig = c["train"]  # the stage's config object (``run_training``)
     torch.manual_seed(c["seed"])  # the trial seed: LoRA init, dropout
-    model = open_model(c)
-    device = ray.train.torch.get_device() if s.world_size > 1 or torch.cuda.is_available() else torch.device("cpu")
+    model = open_model(Path(c["init_dir"]), cfg)
+    device = s.device
     ds = GSQADataset(c["data_root"])
     scene_dirs = {k: Path(v) for k, v in c["scene_dirs"].items()}
     samples, _ = row_samples(ds, "train", scene_dirs)
@@ -57,8 +56,10 @@ def train_loop(s: TrainSession) -> None:
         opt.load_state_dict(state["optimizer"])
         start = int(state["step"]) + 1
     model.to(device)
+    # move_to_device=device: Ray's own choice is cuda:N on fake GPUs (cluster=sim without CUDA)
+    unused = {"find_unused_parameters": True}
     ddp = (
-        ray.train.torch.prepare_model(model, parallel_strategy_kwargs={"find_unused_parameters": True})
+        ray.train.torch.prepare_model(model, move_to_device=device, parallel_strategy_kwargs=unused)
         if s.world_size > 1
         else model
     )

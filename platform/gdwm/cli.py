@@ -12,7 +12,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import cache
 from importlib.metadata import entry_points
@@ -25,7 +25,7 @@ from rich.table import Table
 from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config, sqlite_path, ui_url
 from gdwm.errors import CommandError, one_line
 from gdwm.redact import redact, redact_config
-from gdwm.term import console, err_console, print_dataset_summary
+from gdwm.term import console, err_console
 
 
 @dataclass
@@ -40,29 +40,19 @@ class Command:
     """``--flags`` taking a value (``--keep-last 3`` or ``--keep-last=3``); they reach ``run`` as ``--flag=VALUE``."""
 
 
-def _build_dataset(cfg: DictConfig, _args: list[str]) -> int:
+def build_data(cfg: DictConfig, _args: list[str]) -> int:
+    """``run`` of a plugin's dataset-building command: builds the dataset ``data=`` selects, from ``source=DIR``."""
     from gdwm.datasets import build_dataset
 
     build_dataset(cfg, source=cfg.source)
     return 0
 
 
-def _export_gaussiandwm(cfg: DictConfig, _args: list[str]) -> int:
-    if not cfg.args.out:
-        err_console.print("gdwm data export-gaussiandwm: args.out=DIR is required (the folder to write)", markup=False)
-        return 2
-    # Named by path, as data builders are: gdwm imports no pipelines module.
-    export = get_method("pipelines.data.gaussiandwm_export.export")
-    summary = export(cfg.data.root, cfg.args.out, cfg.args.gaussians, overwrite=cfg.overwrite)
-    for line in summary.lines():
-        console.print(line, markup=False, soft_wrap=True)
-    return 0
-
-
 def _data_info(cfg: DictConfig, _args: list[str]) -> int:
     from gdwm.datasets import verification_line
 
-    print_dataset_summary(get_method(cfg.data.summarizer)(Path(cfg.data.root)))
+    for part in get_method(cfg.data.summarizer)(Path(cfg.data.root)):  # the dataset's own lines and tables
+        console.print(part)
     console.print(verification_line(Path(cfg.data.root)), markup=False)
     return 0
 
@@ -230,20 +220,7 @@ def _config_show(cfg: DictConfig, _args: list[str]) -> int:
 
 
 COMMANDS: dict[str, dict[str, Command]] = {
-    "data": {
-        "synth": Command(_build_dataset, "generate the synthetic_mini dataset (data.num_scenes, data.seed, ...)"),
-        "import-gaussiandwm": Command(
-            _build_dataset, "import the public GaussianDWM release from source=DIR", ["data=gaussiandwm_release"]
-        ),
-        "export-gaussiandwm": Command(
-            _export_gaussiandwm,
-            "write the dataset selected by data=... in the GaussianDWM release's format to args.out=DIR "
-            "(args.gaussians=DIR: per-frame Gaussians of a dataset without them, <scene_id>/gaussians/<frame>.arrow)",
-            ["+args.out=null", "+args.gaussians=null"],
-        ),
-        "convert-nuscenes": Command(
-            _build_dataset, "convert nuScenes v1.0 tables on disk at source=DIR", ["data=nuscenes"]
-        ),
+    "data": {  # plugins add the commands that build their datasets (a mapping in entry-point group gdwm.commands)
         "info": Command(_data_info, "summarise the dataset selected by data=... (scenes, frames, QA, bytes)"),
     },
     "config": {
@@ -284,10 +261,10 @@ COMMANDS: dict[str, dict[str, Command]] = {
         "": Command(
             _compare,
             'comparison table + HTML report of runs: args.sweep=NAME | args.runs=[ID,...] | args.filter="..." '
-            "(default: all), compare=LAYOUT (a conf/compare/ option, default nuinteract), args.baseline=ROW, "
-            "args.out=DIR, args.formats=[...]; cells carry mean ± std over seeds or a bootstrap CI, marks need a "
-            "significant difference: args.alpha=0.05, args.confidence=0.95, args.resamples=1000",
-            defaults=["args=compare", "compare=nuinteract"],
+            "(default: all), compare=LAYOUT (a conf/compare/ option; the default is conf/args/compare.yaml's), "
+            "args.baseline=ROW, args.out=DIR, args.formats=[...]; cells carry mean ± std over seeds or a bootstrap CI, "
+            "marks need a significant difference: args.alpha=0.05, args.confidence=0.95, args.resamples=1000",
+            defaults=["args=compare"],
         ),
     },
     "ui": {
@@ -327,8 +304,10 @@ COMMANDS: dict[str, dict[str, Command]] = {
 
 
 COMMAND_GROUP = "gdwm.commands"
-"""Entry-point group of plugin commands: ``name = "module:function"``, ``function(cfg, argv) -> int``; its
-arguments come from ``conf/args/<name>.yaml`` (selected as ``args=<name>``), its help from its docstring."""
+"""Entry-point group of plugin commands. ``name = "module:function"``: the command ``gdwm <name>``,
+``function(cfg, argv) -> int``; its arguments come from ``conf/args/<name>.yaml`` (selected as ``args=<name>``), its
+help from its docstring. ``name = "module:MAPPING"``: subcommands ``gdwm <name> <sub>``, a ``{sub: Command}`` mapping
+(a built-in command such as ``data`` lists them before its own)."""
 
 
 def _plugin_command(fn_path: str, name: str) -> Command:
@@ -340,24 +319,39 @@ def _plugin_command(fn_path: str, name: str) -> Command:
 
 @cache
 def _load_plugin_commands() -> None:
-    """Add the plugins' commands to COMMANDS (loaded lazily: an entry's module is imported only to run it)."""
+    """Add the plugins' commands to COMMANDS; one whose module fails to import is listed with the error (running it
+    repeats it), not fatal to the other commands."""
     for ep in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
+        try:
+            target = ep.load()
+        except Exception as e:  # a broken plugin must not take the whole CLI down
+            target = e
+        if isinstance(target, Mapping):
+            _add_subcommands(ep.name, ep.value, target)
+            continue
         if ep.name in COMMANDS:
             raise ConfigError(f"plugin command '{ep.name}' ({ep.value}) clashes with a built-in command")
         cmd = _plugin_command(ep.value.replace(":", "."), ep.name)
-        cmd.help = _first_doc_line(ep.value)
+        cmd.help = f"(plugin failed to load: {target!r})" if isinstance(target, Exception) else _first_doc_line(target)
         COMMANDS[ep.name] = {"": cmd}
 
 
-def _first_doc_line(value: str) -> str:
-    module, _, attr = value.partition(":")
-    try:
-        import importlib
+def _add_subcommands(name: str, value: str, subs: Mapping[str, Command]) -> None:
+    """A plugin's subcommands of ``gdwm <name>``, before the built-in ones of that command (if it has any)."""
+    builtin = COMMANDS.get(name, {})
+    if "" in builtin:
+        raise ConfigError(f"plugin subcommands '{name}' ({value}): 'gdwm {name}' is a built-in command without any")
+    for sub, cmd in subs.items():
+        if sub in builtin:
+            raise ConfigError(f"plugin subcommand '{name} {sub}' ({value}) clashes with a built-in subcommand")
+        if not sub or not isinstance(cmd, Command):
+            raise ConfigError(f"plugin subcommand '{name} {sub}' ({value}): expected a gdwm.cli.Command under a name")
+    COMMANDS[name] = {**subs, **builtin}
 
-        doc = getattr(importlib.import_module(module), attr).__doc__ or ""
-    except Exception as e:  # a broken plugin must not take the whole CLI down
-        return f"(plugin failed to load: {e!r})"
-    return doc.strip().splitlines()[0] if doc.strip() else ""
+
+def _first_doc_line(fn: object) -> str:
+    doc = (getattr(fn, "__doc__", None) or "").strip()
+    return doc.splitlines()[0] if doc else ""
 
 
 def _groups_help() -> str:

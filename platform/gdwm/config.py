@@ -251,8 +251,9 @@ class SweepConfig:
 
     name: str = MISSING
     """Sweep name: the MLflow parent run and ``workdir/reports/<name>``."""
-    layout: str = "nuinteract"
-    """Table layout of the report (a ``conf/compare/`` option)."""
+    layout: str | None = None
+    """Table layout of the report (a ``conf/compare/`` option); null = the default of ``gdwm compare``
+    (``conf/args/compare.yaml``)."""
     targets: list[str] = field(default_factory=list)
     """Stages the reported metrics need; only they and their ancestors run (empty = the whole pipeline)."""
     overrides: list[str] = field(default_factory=list)
@@ -284,7 +285,7 @@ class MetricCheck:
     """One watched metric."""
 
     name: str = MISSING
-    """Metric name as logged (``nuinteract/avg``, ``perf/select/...``)."""
+    """Metric name as logged (``<section>/<metric>`` of an evaluation stage, ``perf/<bench>/<metric>``)."""
     direction: Direction = Direction.higher
     """Which way is better."""
     tolerance: Any = 0.0
@@ -321,12 +322,14 @@ class BenchmarkConfig:
     """Suite name: its runs are tagged ``gdwm.benchmark=<name>``."""
     overrides: list[str] = field(default_factory=list)
     """What to evaluate: overrides of ``gdwm run`` (an experiment, zoo references)."""
-    targets: list[str] = field(default_factory=lambda: ["evaluate_qa"])
-    """Stages whose evaluation metrics are compared."""
+    targets: list[str] = field(default_factory=list)
+    """Stages whose evaluation metrics are compared; only they and their ancestors run (empty = the whole
+    pipeline)."""
     metrics: list[MetricCheck] = field(default_factory=list)
     """The watched metrics."""
     perf: list[str] = field(default_factory=list)
-    """Performance benchmarks from ``benchmarks/`` (run with ``--quick``); their figures become ``perf/...``."""
+    """Performance benchmarks by name (entry-point group ``gdwm.benchmarks``, run with ``quick=True``); their figures
+    become ``perf/<bench>/<metric>``."""
     baseline: str | None = None
     """A run id to compare against; default: the latest run of this suite tagged as baseline."""
     seeds: list[int] | None = None

@@ -25,7 +25,7 @@ from pathlib import Path
 from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 
-from gdwm.term import console, err_console, print_dataset_summary
+from gdwm.term import console, err_console
 
 
 class DataMismatch(Exception):
@@ -38,7 +38,8 @@ def build_dataset(cfg: DictConfig, source: str | None) -> None:
     t0 = time.perf_counter()
     get_method(cfg.data.builder)(cfg.data, root=root, source=source, overwrite=cfg.overwrite)
     console.print(f"built {cfg.data.name} in {time.perf_counter() - t0:.1f} s")
-    print_dataset_summary(get_method(cfg.data.summarizer)(root))
+    for part in get_method(cfg.data.summarizer)(root):  # the dataset's own lines and tables
+        console.print(part)
 
 
 # ---- parameters --------------------------------------------------------------------------------------------------
@@ -64,11 +65,14 @@ def check_params(data: DictConfig, root: Path, meta: Mapping) -> None:
     msg = f"data.{key}: requested {_show(requested)}, but the dataset at {root} was built with {_show(built)}"
     msg += "".join(f"; data.{k}: requested {_show(r)}, built with {_show(b)}" for k, r, b in rest)
     sets = " ".join(f"data.{k}={_show(r)}" for k, r, _ in diffs if k in data)
-    if data.get("needs_source", True):
-        how = f"gdwm data import-gaussiandwm / convert-nuscenes source=DIR data={data.get('name')} {sets}"
-    else:
-        how = f"gdwm data synth data={data.get('name')} {sets}"
-    raise DataMismatch(f"{msg}; use another data.root or rebuild it ({how} overwrite=true)")
+    raise DataMismatch(f"{msg}; use another data.root or rebuild it ({build_hint(data)} {sets} overwrite=true)")
+
+
+def build_hint(data: DictConfig) -> str:
+    """The command line that builds the dataset ``data`` selects, from its config (``data.build_command``)."""
+    command = data.get("build_command") or "gdwm data <its build command>"
+    source = " source=DIR" if data.get("needs_source", True) else ""
+    return f"{command}{source} data={data.get('name')}"
 
 
 # ---- files -------------------------------------------------------------------------------------------------------

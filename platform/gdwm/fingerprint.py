@@ -4,9 +4,10 @@ A stage's fingerprint covers:
 
 - **First-party code**: the stage's module (and its ``setup``/``score`` functions' modules, and the modules named by
   ``_target_`` values in its config subset), and every first-party module they import, transitively -- imports
-  inside functions included, and each package's ``__init__.py`` on the way. First-party means the packages ``gdwm``,
-  ``pipelines`` and ``model_zoo``, the package that defines the stage (a plugin's package, e.g. one on
-  ``GDWM_CONF_PATH``), and any module whose source is not in the interpreter's standard library or site-packages.
+  inside functions included, and each package's ``__init__.py`` on the way. First-party means the packages of
+  gdwm's distribution and of every distribution that registers gdwm entry points (``first_party``), the package that
+  defines the stage (a plugin's package, e.g. one on ``GDWM_CONF_PATH``), and any module whose source is not in the
+  interpreter's standard library or site-packages.
   Each module is hashed from its syntax tree without docstrings (``ast.dump``), so comments, docstrings and
   formatting do not count, while any change to what runs does. A module without Python source (a compiled
   extension) cannot be hashed: it enters as ``unhashable`` and the plan says so; bump the stage's ``version`` when
@@ -19,7 +20,7 @@ Not covered, so still the stage's ``version``'s job: data files the code reads a
 
 Parsing every module is ~0.3 s for the whole pipeline; each file's hash and imports are kept in memory and in
 ``$GDWM_LOCAL_CACHE/fingerprints.json`` (default ``~/.cache/gdwm``) by (path, size, mtime), so a warm launch only
-stats the files (``benchmarks/bench_fingerprint.py``).
+stats the files (measured by the ``fingerprint`` performance benchmark).
 """
 
 from __future__ import annotations
@@ -38,13 +39,24 @@ import tempfile
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import cache
-from importlib.metadata import PackageNotFoundError, version
+from importlib.metadata import PackageNotFoundError, entry_points, packages_distributions, version
 from pathlib import Path
 from typing import Any
 
 log = logging.getLogger(__name__)
 
-FIRST_PARTY = frozenset({"gdwm", "pipelines", "model_zoo"})
+
+@cache
+def first_party() -> frozenset[str]:
+    """Top-level packages hashed wherever they are installed: those of gdwm's own distribution and of every
+    distribution that plugs into it (registers an entry point in a ``gdwm.*`` group), site-packages included."""
+    groups = [g for g in entry_points().groups if g.startswith("gdwm.")]
+    dists = {ep.dist.name for g in groups for ep in entry_points(group=g) if ep.dist is not None}
+    tops = packages_distributions()
+    dists.update(tops.get("gdwm", ()))
+    return frozenset({"gdwm"} | {top for top, ds in tops.items() if dists.intersection(ds)})
+
+
 UNHASHABLE = "unhashable"
 
 NUMERIC_LIBRARIES: Mapping[str, tuple[str, ...]] = {
@@ -155,7 +167,7 @@ def _top(name: str) -> tuple[tuple[Path, ...], Path | None, bool] | None:
     locations = tuple(Path(p) for p in (spec.submodule_search_locations or ()))
     origin = Path(spec.origin) if spec.origin and spec.origin not in ("built-in", "frozen") else None
     where = str(origin.resolve()) if origin else (str(locations[0].resolve()) if locations else "")
-    first = name in FIRST_PARTY or bool(where and not where.startswith(_site_roots()))
+    first = name in first_party() or bool(where and not where.startswith(_site_roots()))
     return locations, origin, first
 
 
@@ -260,9 +272,31 @@ def _module(name: str, found: _Found) -> ModuleInfo:
     return ModuleInfo(name, shown, digest, imports)
 
 
+@cache
+def _facade_exports(path: Path, mtime_ns: int) -> dict[str, str] | None:
+    """``EXPORTS`` (name -> defining module) of a facade module: one that defines a module-level ``__getattr__`` and a
+    literal dict ``EXPORTS`` (``gdwm.api``); None for any other module."""
+    tree = ast.parse(path.read_bytes(), str(path))
+    getattr_ = any(isinstance(n, ast.FunctionDef) and n.name == "__getattr__" for n in tree.body)
+    for n in tree.body:
+        target = n.targets[0] if isinstance(n, ast.Assign) and len(n.targets) == 1 else getattr(n, "target", None)
+        if getattr_ and isinstance(target, ast.Name) and target.id == "EXPORTS" and n.value is not None:
+            return dict(ast.literal_eval(n.value))
+    return None
+
+
+def _exports(found: _Found | None) -> dict[str, str] | None:
+    if found is None or found.path is None or not found.first_party:
+        return None
+    return _facade_exports(found.path, found.path.stat().st_mtime_ns)
+
+
 def closure(modules: Iterable[str], extra_first_party: Iterable[str] = ()) -> tuple[dict[str, ModuleInfo], set[str]]:
     """Every first-party module reachable from ``modules`` by imports (parent packages included), and the
-    top-level names of the third-party modules they import."""
+    top-level names of the third-party modules they import.
+
+    A name imported from a facade (``from gdwm.api import TrainSession``) counts as an import of the module that
+    defines it; the facade's own code and imports do not count (it only hands names on)."""
     extra = frozenset(extra_first_party)
     seen: dict[str, ModuleInfo] = {}
     third: set[str] = set()
@@ -274,10 +308,16 @@ def closure(modules: Iterable[str], extra_first_party: Iterable[str] = ()) -> tu
             continue
         visited.add(name)
         found = _find(name, extra)
-        if found is None:
-            continue  # ``from pkg import function``: not a module
+        if found is None:  # ``from pkg import function``: not a module, unless a facade hands it on
+            parent, _, attr = name.rpartition(".")
+            exports = _exports(_find(parent, extra)) if parent else None
+            if exports is not None and attr in exports:
+                todo.append(exports[attr])
+            continue
         if not found.first_party:
             third.add(name.partition(".")[0])
+            continue
+        if _exports(found) is not None:
             continue
         info = _module(name, found)
         seen[name] = info
@@ -292,7 +332,7 @@ def closure(modules: Iterable[str], extra_first_party: Iterable[str] = ()) -> tu
 class CodeFingerprint:
     digest: str
     files: dict[str, str] = field(default_factory=dict)
-    """Module file (``pipelines/stages/lora.py``) -> its normalised hash."""
+    """Module file (``mypackage/stages/train.py``) -> its normalised hash."""
     libraries: dict[str, str] = field(default_factory=dict)
     """Distribution -> installed version (``absent`` when declared but not installed)."""
 

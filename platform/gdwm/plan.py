@@ -364,10 +364,9 @@ def ensure_data(cfg: DictConfig, dry_run: bool = False) -> dict:
             console.print(f"generating {cfg.data.name} at {root} ...")
             build_dataset(cfg, source=None)
         else:
-            raise RunError(
-                f"dataset '{cfg.data.name}' not found at {root}: build it first "
-                f"(gdwm data import-gaussiandwm / convert-nuscenes source=DIR data={cfg.data.name})"
-            )
+            from gdwm.datasets import build_hint
+
+            raise RunError(f"dataset '{cfg.data.name}' not found at {root}: build it first ({build_hint(cfg.data)})")
     from gdwm.datasets import DataMismatch, check_dataset
 
     try:  # the fingerprint of the files as they are now; params other than requested: exit 2 before anything runs

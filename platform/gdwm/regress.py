@@ -4,8 +4,8 @@ regression), 1 (regression) or 2 (error) — what a nightly job needs to fail lo
 
 A benchmark (``conf/benchmark/NAME.yaml``) names an experiment (overrides and targets; zoo references such as
 ``stage.lora.source=zoo:gdwm-lora@champion`` evaluate a registered version), the seeds it runs (one trial each; the
-compared value is their mean), the metrics with their tolerances, and performance benchmarks from ``benchmarks/``
-whose figures become metrics ``perf/<bench>/<metric>``.
+compared value is their mean), the metrics with their tolerances, and performance benchmarks (registered by name in
+the entry-point group ``gdwm.benchmarks``) whose figures become metrics ``perf/<bench>/<metric>``.
 
 A tolerance is a fixed amount (``tolerance: 1.0``, or a fraction with ``relative: true``), or the baseline's own
 noise: ``tolerance: {sigma: 3}`` allows 3 standard deviations of the compared difference, the baseline's spread
@@ -16,21 +16,20 @@ per-sample predictions, combined over seeds) finds it significant, beyond the to
 
 from __future__ import annotations
 
-import importlib
 import json
 import math
 import re
-import sys
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
+from importlib.metadata import entry_points
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
 from gdwm.compare.layout import Direction
-from gdwm.config import BenchmarkConfig, CheckTest, ConfigError, MetricCheck, conf_dir, load_config
+from gdwm.config import BenchmarkConfig, CheckTest, ConfigError, MetricCheck, load_config
 from gdwm.term import console, err_console
 
 KIND = "regression"
@@ -109,21 +108,29 @@ def failed(rows: list[Row]) -> list[Row]:
     return [r for r in rows if r.verdict in ("REGRESSION", "missing", "no spread", "untestable")]
 
 
+BENCHMARK_GROUP = "gdwm.benchmarks"
+"""Entry-point group of performance benchmarks: ``name = "module:run"``, ``run(quick: bool) -> list`` of results with
+``metric`` and ``value``."""
+
+
 def perf_metrics(names: list[str]) -> dict[str, float]:
-    """Figures of ``benchmarks/`` (quick mode) as ``perf/<bench>/<metric>`` metrics."""
+    """Figures of the named performance benchmarks (quick mode) as ``perf/<bench>/<metric>`` metrics."""
     out = {}
-    root = str(conf_dir().parent)  # benchmarks/ sits next to conf/ in a checkout (and in the k8s image)
-    if names and root not in sys.path:
-        sys.path.append(root)
+    registered = {ep.name: ep for ep in entry_points(group=BENCHMARK_GROUP)} if names else {}
     for name in names:
+        if name not in registered:
+            raise RegressError(
+                f"benchmark.perf: no performance benchmark '{name}' (entry-point group {BENCHMARK_GROUP} has: "
+                f"{', '.join(sorted(registered)) or 'none'})"
+            )
+        ep = registered[name]
         try:
-            mod = importlib.import_module(f"benchmarks.bench_{name}")
+            run = ep.load()
         except ImportError as e:
             raise RegressError(
-                f"benchmark.perf: performance benchmark '{name}' (benchmarks/bench_{name}.py under {root}) does not "
-                f"import: {e}"
+                f"benchmark.perf: performance benchmark '{name}' ({ep.value}) does not import: {e}"
             ) from e
-        for r in mod.run(quick=True):
+        for r in run(quick=True):
             out[f"perf/{name}/{_slug(r.metric)}"] = float(r.value)
     return out
 

@@ -219,7 +219,7 @@ def report(cfg: DictConfig, sweep: SweepConfig, argv: list[str]) -> int:
     from gdwm.compare.command import compare
 
     extra = [a for a in user_overrides(argv) if a.split("=", 1)[0].split(".")[0] in ("workdir", "tracking", "ui")]
-    base = ["args=compare", f"compare={sweep.layout}", f"args.sweep={sweep.name}"]
+    base = ["args=compare", *([f"compare={sweep.layout}"] if sweep.layout else []), f"args.sweep={sweep.name}"]
     if sweep.baseline:
         base.append(f"args.baseline={sweep.baseline}")
     return compare(load_config([*base, *extra]))

@@ -92,3 +92,41 @@ def test_status_of_a_workdir_where_nothing_ran_creates_nothing(tmp_path):
     assert r.returncode == 1
     assert f"no MLflow store at {work.resolve()}/mlflow.db: nothing has run in workdir" in r.stderr.replace("\n", "")
     assert not work.exists()
+
+
+def test_plugin_subcommands_come_before_the_built_in_ones_and_may_not_clash(monkeypatch):
+    import pytest
+
+    from gdwm import cli
+    from gdwm.config import ConfigError
+
+    def run(cfg, args):
+        return 0
+
+    monkeypatch.setattr(
+        cli, "COMMANDS", {"data": {"info": cli.Command(run, "built in")}, "run": {"": cli.Command(run, "")}}
+    )
+    cli._add_subcommands("data", "plug:DATA", {"make": cli.Command(run, "plugged", ["data=x"])})
+    assert list(cli.COMMANDS["data"]) == ["make", "info"]
+    assert cli.COMMANDS["data"]["make"].defaults == ["data=x"]
+    cli._add_subcommands("new", "plug:NEW", {"one": cli.Command(run, "")})
+    assert list(cli.COMMANDS) == ["data", "run", "new"]
+    with pytest.raises(ConfigError, match=r"^plugin subcommand 'data info' \(plug:X\) clashes with a built-in"):
+        cli._add_subcommands("data", "plug:X", {"info": cli.Command(run, "")})
+    with pytest.raises(ConfigError, match=r"^plugin subcommands 'run' \(plug:X\): 'gdwm run' is a built-in command"):
+        cli._add_subcommands("run", "plug:X", {"sub": cli.Command(run, "")})
+    with pytest.raises(ConfigError, match=r"^plugin subcommand 'data bad' \(plug:X\): expected a gdwm.cli.Command"):
+        cli._add_subcommands("data", "plug:X", {"bad": run})
+
+
+def test_the_data_commands_are_the_plugins():
+    from importlib.metadata import entry_points
+
+    from gdwm.cli import COMMAND_GROUP
+
+    (ep,) = [e for e in entry_points(group=COMMAND_GROUP) if e.name == "data"]
+    subs = ep.load()
+    assert list(subs) == ["synth", "import-gaussiandwm", "export-gaussiandwm", "convert-nuscenes"]
+    assert subs["import-gaussiandwm"].defaults == ["data=gaussiandwm_release"]
+    assert subs["convert-nuscenes"].defaults == ["data=nuscenes"]
+    assert subs["synth"].defaults == []

@@ -122,3 +122,17 @@ def test_composing_a_config_imports_no_heavy_library():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "[]"
+
+
+def test_compare_takes_its_default_layout_from_conf_and_the_command_line_wins(tmp_path):
+    assert load_config([f"workdir={tmp_path}", "args=compare"]).compare.name == "nuinteract"  # conf/args/compare.yaml
+    assert load_config([f"workdir={tmp_path}", "args=compare", "compare=omnidrive"]).compare.name == "omnidrive"
+    assert load_config([f"workdir={tmp_path}", "compare=omnidrive", "args=compare"]).compare.name == "omnidrive"
+    assert load_config([f"workdir={tmp_path}"]).compare is None
+
+
+def test_sweep_and_benchmark_defaults_name_no_pipeline():
+    from gdwm.config import BenchmarkConfig, SweepConfig
+
+    assert SweepConfig(name="s").layout is None  # gdwm compare's default layout
+    assert BenchmarkConfig(name="b").targets == []  # the whole pipeline

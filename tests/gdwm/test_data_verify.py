@@ -130,6 +130,7 @@ def test_check_dataset_warns_once_per_state(tmp_path, hashed, capsys):
 def test_params_must_match_the_request(tmp_path):
     meta = {"params": {"num_scenes": 1, "seed": 0, "weathers": ["clear", "fog"]}}
     data = OmegaConf.create({"name": "synthetic_mini", "needs_source": False, "num_scenes": 1, "seed": 0})
+    data.build_command = "gdwm data synth"  # the config names its build command; the message repeats it
     data.weathers = ["clear", "fog"]
     check_params(data, tmp_path, meta)  # lists compare as plain lists
     check_params(data, tmp_path, {})  # nothing recorded (an older dataset): nothing to compare

@@ -1,10 +1,11 @@
-"""Losing a worker node of ``cluster=sim`` mid-run: the run finishes, training resumes from its last checkpoint on
-shared storage (the workdir), and MLflow and the cache hold each stage once.
+"""Losing a worker node of ``cluster=sim`` mid-sweep or mid-stage: the launch finishes, training resumes from its
+last checkpoint on shared storage (the workdir), a per-scene stage's scenes rerun on the surviving node, and MLflow
+and the cache hold each stage once.
 
 The node is lost the way a machine is: every process of it (its raylet and the workers under it) gets SIGKILL.
 Which processes those are comes from the cluster's state file (``<workdir>/sim-cluster/<pid>.json``) and the
-process tree; the node chosen is the one that hosts the training group, blocked after its step-1 checkpoint
-(``GDWM_TEST_BLOCK``, tests/gdwm/stages.py).
+process tree; the node chosen is the one that hosts the training group blocked after its step-1 checkpoint, or a
+scene actor blocked inside a scene (``GDWM_TEST_BLOCK``, tests/gdwm/stages.py).
 """
 
 from __future__ import annotations
@@ -14,7 +15,9 @@ import json
 import os
 import signal
 import subprocess
+import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -59,16 +62,14 @@ def _wait_for(path: Path, proc: subprocess.Popen, timeout: float) -> None:
         time.sleep(0.2)
 
 
-@pytest.mark.slow  # one toy run on a 2-node sim cluster up to the tokenizer, with a restart: ~2-3 min on 2 cores
-def test_losing_the_training_node_resumes_from_the_last_checkpoint_and_finishes(tmp_path):
+@pytest.mark.slow  # the toy sweep (3 rows) on a 2-node sim cluster with a restart: ~4 min on 2 cores
+@pytest.mark.timeout(1200)
+def test_losing_the_training_node_mid_sweep_resumes_from_the_last_checkpoint_and_finishes(tmp_path):
     toy = Toy(tmp_path)
-    proc = subprocess.Popen(
-        toy.args("targets=[tokenizer]", "cluster=sim", "run.live=false"),
-        env=toy.env(GDWM_TEST_BLOCK="tokenizer:step=1"),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    args = [sys.executable, "-m", "gdwm", "sweep", "sweep=toy_ablation", f"workdir={toy.work}", f"data.root={toy.data}",
+            "cluster=sim", "run.live=false"]  # fmt: skip
+    proc = subprocess.Popen(args, env=toy.env(GDWM_TEST_BLOCK="tokenizer:step=1"), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
     try:
         _wait_for(tmp_path / "blocked-tokenizer", proc, 420)
         (state_file,) = (toy.work / "sim-cluster").glob("*.json")
@@ -81,28 +82,36 @@ def test_losing_the_training_node_resumes_from_the_last_checkpoint_and_finishes(
                 os.kill(pid, signal.SIGKILL)
         killed_at = time.monotonic()
         (tmp_path / "release").touch()
-        out, err = proc.communicate(timeout=480)
+        out, err = proc.communicate(timeout=900)
         recovered_s = time.monotonic() - killed_at
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
     assert proc.returncode == 0, f"exit {proc.returncode}\n{out[-3000:]}\n{err[-5000:]}"
-    print(f"node {lost['name']} lost at tokenizer step 1; the run finished {recovered_s:.1f} s later")
+    print(f"node {lost['name']} lost at tokenizer step 1; the sweep finished {recovered_s:.1f} s later")
+    assert "sweep: 3 trials, 9 stage executions run (15 as independent runs without a cache)" in out
 
     # the training resumed at step 2 from the step-1 checkpoint: steps 0..3 logged once each
     runs = toy.runs()
-    assert sorted(r.data.tags["gdwm.stage"] for r in runs) == ["distill", "reconstruct", "tokenizer"]
+    assert Counter(r.data.tags["gdwm.stage"] for r in runs) == {
+        "reconstruct": 1, "distill": 1, "tokenizer": 1, "lora": 3, "evaluate_qa": 3,
+    }  # fmt: skip
     tok = next(r for r in runs if r.data.tags["gdwm.stage"] == "tokenizer")
     client = toy.client()
     assert sorted(m.step for m in client.get_metric_history(tok.info.run_id, "loss")) == [0, 1, 2, 3]
     starts = {m.step: m.value for m in client.get_metric_history(tok.info.run_id, "start")}
     assert starts == {0: 0.0, 1: 0.0, 2: 2.0, 3: 2.0}
-    # nothing duplicated, nothing left RUNNING
-    assert {r.info.status for r in runs + toy.runs("run")} == {"FINISHED"}
-    assert len(toy.runs("run")) == 1
+    # nothing duplicated, nothing left RUNNING; the rows' numbers are the undisturbed sweep's
+    everything = runs + toy.runs("trial") + toy.runs("row") + toy.runs("sweep")
+    assert {r.info.status for r in everything} == {"FINISHED"}
+    assert [len(toy.runs(k)) for k in ("sweep", "row", "trial")] == [1, 3, 3]
+    acc = {r.data.tags["gdwm.row"]: r.data.metrics["acc"] for r in toy.runs("trial")}
+    assert acc == {"rank 2": 24.0, "rank 4": 48.0, "rank 8": 96.0}
     cache = Cache(toy.work / "cache")
-    assert [len(cache.entries(s)) for s in ("reconstruct", "distill", "tokenizer")] == [3, 3, 1]
+    assert [len(cache.entries(s)) for s in ("reconstruct", "distill", "tokenizer", "lora", "evaluate_qa")] == [
+        3, 3, 1, 3, 3,
+    ]  # fmt: skip
     (entry,) = cache.entries("tokenizer")
     # 3 scenes x 64 x 4 features -> target 768 % 5 = 3 per step, 4 steps
     w = torch.load(cache.materialize(entry) / "weights.pt", weights_only=True)["w"]

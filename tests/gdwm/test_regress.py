@@ -155,3 +155,43 @@ def test_sigma_without_seeds_exits_2(tmp_path):
     assert r.returncode == 2
     assert "nuinteract/plan_acc has tolerance {sigma: K}, which needs >= 2 seeds" in r.stderr
     assert not (toy.work / "mlflow.db").exists()
+
+
+def test_every_benchmark_module_is_registered_by_name():
+    from importlib.metadata import entry_points
+    from pathlib import Path
+
+    from gdwm.regress import BENCHMARK_GROUP
+
+    bench = Path(__file__).resolve().parents[2] / "benchmarks"
+    modules = {p.stem.removeprefix("bench_") for p in bench.glob("bench_*.py")}
+    registered = {ep.name: ep.value for ep in entry_points(group=BENCHMARK_GROUP)}
+    assert registered == {name: f"benchmarks.bench_{name}:run" for name in modules}
+
+
+def _toy_bench(quick: bool = False) -> list:
+    from types import SimpleNamespace
+
+    return [SimpleNamespace(metric="Median ms (quick)" if quick else "median ms", value=2)]
+
+
+def test_perf_metrics_run_registered_benchmarks_and_name_a_missing_one(monkeypatch):
+    from importlib.metadata import EntryPoint
+
+    from gdwm import regress
+    from gdwm.regress import RegressError, perf_metrics
+
+    eps = [
+        EntryPoint("toy", f"{__name__}:_toy_bench", "gdwm.benchmarks"),
+        EntryPoint("broken", "tests.gdwm.no_such_module:run", "gdwm.benchmarks"),
+    ]
+    monkeypatch.setattr(regress, "entry_points", lambda group: [e for e in eps if group == "gdwm.benchmarks"])
+    assert perf_metrics(["toy"]) == {"perf/toy/median_ms_quick": 2.0}
+    with pytest.raises(RegressError) as e:
+        perf_metrics(["toy", "selct"])
+    assert str(e.value) == (
+        "benchmark.perf: no performance benchmark 'selct' (entry-point group gdwm.benchmarks has: broken, toy)"
+    )
+    with pytest.raises(RegressError, match=r"^benchmark.perf: performance benchmark 'broken' "
+                       r"\(tests.gdwm.no_such_module:run\) does not import: No module named"):  # fmt: skip
+        perf_metrics(["broken"])

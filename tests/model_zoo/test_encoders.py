@@ -310,3 +310,17 @@ def test_langsplat_proxy_is_another_encoder_than_the_foundation_one(daisy):
     assert len(torch.unique(a.reshape(-1, 64), dim=0)) < H * W / 10  # regions, not pixels
     assert len(torch.unique(d.reshape(-1, 64), dim=0)) > H * W / 2
     pickle.loads(pickle.dumps(proxy))  # ships to Ray workers
+
+
+def test_every_encoder_builds_from_the_pipeline_settings_taking_only_its_own_fields():
+    """``EncoderSettings`` picks no variant: daisy takes d_f and the seed, the LangSplat stand-in d_f (its lift keeps
+    seed 1), the Qwen tower the checkpoint path and the tiny flavor."""
+    from model_zoo.encoders import EncoderSettings, LangSplatProxyConfig
+
+    s = EncoderSettings(d_f=16, seed=5, path="/nonexistent", tiny=True)
+    assert [n for _, n in registry.variants("encoder")] == ["daisy", "langsplat_proxy", "qwen3_vl_vision"]
+    assert registry.build("encoder", "daisy", s).cfg == DaisyConfig(d_f=16, seed=5)
+    assert registry.build("encoder", "langsplat_proxy", s).cfg == LangSplatProxyConfig(d_f=16, seed=1)
+    qwen = registry.build("encoder", "qwen3_vl_vision", s)
+    assert qwen.cfg == QwenVisionConfig(path="/nonexistent", tiny=True)
+    assert qwen.d_f == tiny_vision_config().out_hidden_size

@@ -74,3 +74,13 @@ def test_fit_rejects_features_of_the_wrong_width():
     with pytest.raises(ValueError) as e:
         fit_autoencoder(torch.zeros(4, 32), FeatureAEConfig(d_f=64), steps=1)
     assert str(e.value) == "fit_autoencoder: expected features [N > 0, d_f=64], got [4, 32]"
+
+
+def test_the_variant_fixes_the_code_width_the_caller_asks_for():
+    """The distill stage asks the variant for its config: ``langsplat3`` answers 3 dims whatever d_z is set."""
+    foundation = registry.get("feature_tokenizer", "foundation")
+    langsplat3 = registry.get("feature_tokenizer", "langsplat3")
+    assert foundation.configure(32, 8, 64) == FeatureAEConfig(d_f=32, d_z=8, hidden=64)
+    assert langsplat3.configure(32, 16, 64) == FeatureAEConfig(d_f=32, d_z=3, hidden=64)
+    assert (foundation.fixed_d_z, langsplat3.fixed_d_z) == (None, 3)
+    assert foundation.configure() == FeatureAEConfig()

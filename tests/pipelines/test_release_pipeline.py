@@ -123,7 +123,7 @@ def test_the_newest_run_of_a_row_is_the_row():
 GEN = ["stage/diffusion_vae=tiny", "stage/diffusion=tiny", "stage/evaluate_gen=tiny"]
 
 
-@pytest.mark.slow  # the release's whole tiny pipeline on local Ray: ~85 s on 2 idle cores; make test keeps the checks above
+@pytest.mark.slow  # the release's whole tiny pipeline on local Ray: ~85 s on 2 idle cores (make test keeps the rest)
 def test_a_tiny_release_experiment_runs_through_evaluate_qa_and_evaluate_gen_on_local_ray(work):
     r = _gdwm("run", "experiment=gaussiandwm_release", f"workdir={work}", "targets=[evaluate_qa,evaluate_gen]", *TINY,
               *GEN)  # fmt: skip

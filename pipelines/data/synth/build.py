@@ -285,7 +285,7 @@ def build(cfg: Any, root: str | Path, source: str | None = None, overwrite: bool
             "config": {
                 k: v
                 for k, v in asdict(cfg).items()
-                if k not in ("root", "builder", "summarizer", "num_workers", "tables")
+                if k not in ("root", "builder", "build_command", "summarizer", "num_workers", "tables")
             },
             "resolution": [cfg.width, cfg.height],
             "scenarios": [f["scenario"] for f in scenarios],

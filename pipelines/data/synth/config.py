@@ -24,6 +24,8 @@ class SynthConfig(DatasetConfig):
     """Dataset name; also the folder under ``<workdir>/data/``."""
     builder: str = "pipelines.data.synth.build.build"
     """Dotted path of the generator."""
+    build_command: str | None = "gdwm data synth"
+    """Generates it (``gdwm run`` does too, when it is absent)."""
     needs_source: bool = False
     """Generated from the seed: no input directory, so `gdwm run` makes it when absent."""
     planner: str | None = "pipelines.data.synth.config.planned_scenes"

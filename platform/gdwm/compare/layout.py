@@ -85,7 +85,7 @@ class CompareArgs:
     runs: list[str] = field(default_factory=list)
     """Compare these run ids, in this order."""
     filter: str | None = None
-    """Compare the runs an MLflow filter string selects, e.g. "tags.`gdwm.pipeline` = 'gaussiandwm_pp'"."""
+    """Compare the runs an MLflow filter string selects, e.g. "tags.`gdwm.pipeline` = 'my_pipeline'"."""
     baseline: str | None = None
     """Row label or run id the deltas are taken against; null = the first row that did not fail."""
     factors: list[str] = field(default_factory=list)

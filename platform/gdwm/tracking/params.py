@@ -46,7 +46,7 @@ _NAME = re.compile(r"[\w\-. :/]+")
 
 def flatten_params(cfg: Mapping | DictConfig, prefix: str = "") -> dict[str, str]:
     """``{"a": {"b": 1}, "l": [1, 2]}`` -> ``{"a.b": "1", "l": "[1, 2]"}``; a mapping with a key MLflow does not accept
-    in a name (``{"NuInteract_RD&P": ...}``) is one param, its JSON. Values cut to MLflow's param limit, credentials
+    in a name (``{"Task_A&B": ...}``) is one param, its JSON. Values cut to MLflow's param limit, credentials
     in them masked (:func:`gdwm.redact.redact`: params are readable by every user of the store)."""
     out: dict[str, str] = {}
     for key, value in _plain(cfg).items():

@@ -232,5 +232,5 @@ def tag_versions(client: MlflowClient, cache_keys: Iterable[str], tags: Mapping[
 
 
 def metric_tags(metrics: Mapping[str, Any]) -> dict[str, str]:
-    """``{"nuinteract/avg": 41.2}`` -> ``{"gdwm.metric.nuinteract/avg": "41.2"}`` (numeric values only)."""
+    """``{"qa/avg": 41.2}`` -> ``{"gdwm.metric.qa/avg": "41.2"}`` (numeric values only)."""
     return {f"{TAG_METRIC}{k}": str(v) for k, v in metrics.items() if _numeric(v)}

@@ -6,7 +6,7 @@ from omegaconf import OmegaConf
 
 from gdwm.config import load_config
 from pipelines.generation.config import DiffusionStageConfig
-from pipelines.stages.diffusion import training_weathers
+from pipelines.generation.examples import training_weathers
 
 
 def test_every_dual_condition_row_resolves_with_weather_targets_off(tmp_path):

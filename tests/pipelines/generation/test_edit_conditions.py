@@ -26,8 +26,8 @@ from pipelines.generation.edits import (
     gaussians_in_box,
     remove_vehicle,
 )
+from pipelines.generation.examples import conditions_of
 from pipelines.generation.samples import GenTarget, build_example, edited_example, enumerate_targets
-from pipelines.stages.diffusion import conditions_of
 from pipelines.understanding.config import WorldConfig
 from pipelines.understanding.data import load_samples, training_corpus
 from pipelines.understanding.model import Components, build_world_model

@@ -1,0 +1,75 @@
+"""gdwm's API for pipelines: the one module of gdwm that ``pipelines`` (and any plugin) imports; the rest of gdwm
+is private to it and may change without notice.
+
+- Stages: ``stage`` (the decorator), ``StageContext`` (what a stage function receives), ``StageDef``.
+- Training on Ray Train: ``TrainSession`` (what a loop gets on every worker), ``warmup_cosine_lr``.
+- Commands (entry-point group ``gdwm.commands``): ``Command``, ``CommandError`` (one line, exit 1),
+  ``build_data`` (a dataset-building command's ``run``), ``run_pipeline`` (a sub-pipeline up to some targets),
+  ``TrackingBackend`` (MLflow, for a command's own runs), ``console`` / ``err_console`` (terminal output).
+- Reporting: ``mean_of_printed`` (the average of numbers as a table prints them).
+
+Names load on first use (``EXPORTS``: name -> defining module), so a light plugin module (a command list read at
+every start) does not pay for Ray Train or MLflow. A stage's code fingerprint follows each imported name to its
+defining module (``gdwm.fingerprint``), so importing from here adds no other platform code to its cache key.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # what checkers and IDEs see; EXPORTS below must name the same (tests/gdwm/test_api.py)
+    from gdwm.cli import Command, build_data
+    from gdwm.compare.rounding import mean_of_printed
+    from gdwm.errors import CommandError
+    from gdwm.runner import run_pipeline
+    from gdwm.stage import StageContext, StageDef, stage
+    from gdwm.term import console, err_console
+    from gdwm.tracking import TrackingBackend
+    from gdwm.training import TrainSession, warmup_cosine_lr
+
+EXPORTS = {
+    "stage": "gdwm.stage",
+    "StageContext": "gdwm.stage",
+    "StageDef": "gdwm.stage",
+    "TrainSession": "gdwm.training",
+    "warmup_cosine_lr": "gdwm.training",
+    "Command": "gdwm.cli",
+    "build_data": "gdwm.cli",
+    "CommandError": "gdwm.errors",
+    "run_pipeline": "gdwm.runner",
+    "TrackingBackend": "gdwm.tracking",
+    "console": "gdwm.term",
+    "err_console": "gdwm.term",
+    "mean_of_printed": "gdwm.compare.rounding",
+}
+"""Name -> the module that defines it (a literal: the fingerprint reads it without importing this module)."""
+
+__all__ = [  # noqa: RUF022 (the order of EXPORTS)
+    "stage",
+    "StageContext",
+    "StageDef",
+    "TrainSession",
+    "warmup_cosine_lr",
+    "Command",
+    "build_data",
+    "CommandError",
+    "run_pipeline",
+    "TrackingBackend",
+    "console",
+    "err_console",
+    "mean_of_printed",
+]
+
+
+def __getattr__(name: str) -> Any:
+    module = EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'gdwm.api' has no attribute {name!r} (the API: {', '.join(sorted(EXPORTS))})")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later lookups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *EXPORTS})

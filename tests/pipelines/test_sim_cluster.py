@@ -1,0 +1,48 @@
+"""The real pipelines on ``cluster=sim``: their training groups get fake GPUs (Ray resources without CUDA here) and
+run their CPU kernels; the understanding branch and the diffusion model train with 2 workers across the sim's nodes.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mlflow
+import pytest
+import torch
+
+from gdwm.cache import Cache
+from tests.pipelines.conftest import TINY_RUN, gdwm_cli
+
+GEN = ["stage/diffusion_vae=tiny", "stage/diffusion=tiny"]
+
+
+@pytest.mark.slow  # the tiny understanding branch and the tiny diffusion on a 2-node sim cluster: ~6 min on 2 cores
+@pytest.mark.timeout(1800)
+def test_tiny_pipelines_train_on_the_sim_clusters_fake_gpus(tmp_path):
+    work = tmp_path / "w"
+    targets = "targets=[evaluate_qa,diffusion]"
+    r = gdwm_cli("run", f"workdir={work}", f"data.root={work / 'data'}", *TINY_RUN, *GEN, targets, "cluster=sim",
+                 "run.live=false", timeout=1700)  # fmt: skip
+    assert "head + 2 worker node(s) x 2 CPU, 2 GPU, token auth on" in r.stdout
+    if not torch.cuda.is_available():
+        assert "stages placed on GPUs run their CPU kernels" in r.stdout
+    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("sim placement: "))
+    # tokenizer, lora and diffusion: a Ray Train group of 2 workers (1 fake GPU each) per stage
+    counts: dict[str, int] = {}
+    for node in line.removeprefix("sim placement: ").split("; "):
+        for actor in node.partition(": ")[2].split(", "):
+            cls, n = actor.rsplit(" x", 1)
+            counts[cls] = counts.get(cls, 0) + int(n)
+    assert counts["RayTrainWorker"] == 6, line
+    client = mlflow.MlflowClient(f"sqlite:///{work.resolve()}/mlflow.db")
+    exp = client.get_experiment_by_name("gdwm")
+    runs = {
+        r.data.tags["gdwm.stage"]: r for r in client.search_runs([exp.experiment_id]) if "gdwm.stage" in r.data.tags
+    }
+    assert {"tokenizer", "lora", "evaluate_qa", "diffusion_vae", "diffusion"} <= set(runs)
+    assert {r.info.status for r in runs.values()} == {"FINISHED"}
+    assert {r.data.tags["gdwm.cluster"] for r in runs.values()} == {"sim"}
+    for stage in ("tokenizer", "lora", "diffusion"):
+        world = client.download_artifacts(runs[stage].info.run_id, "train/world.txt", str(tmp_path / stage))
+        assert Path(world).read_text() == "world_size=2", stage
+    assert len(Cache(work / "cache").entries("evaluate_qa")) == 1
