@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import tempfile
+import time
 import traceback
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -476,10 +477,15 @@ def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, bases, don
         max_restarts=env.max_retries,
         max_task_retries=env.max_retries,
     )
-    actors = [actor_cls.remote(sd, subset, float(res.get("num_cpus", 1)), env.deterministic) for _ in range(n)]
+
+    def new_actor():
+        return actor_cls.remote(sd, subset, float(res.get("num_cpus", 1)), env.deterministic)
+
+    actors = [new_actor() for _ in range(n)]
     queue = list(misses)
     running: dict[ray.ObjectRef, tuple[str, Any]] = {}
     errors: dict[str, str] = {}
+    lost: dict[str, int] = {}
 
     def submit(actor) -> None:
         s = queue.pop(0)
@@ -498,6 +504,21 @@ def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, bases, don
             except ray.exceptions.RayTaskError as e:
                 errors[s] = _user_traceback(e)
                 _progress(env, sd.name, s, "failed", message=str(e.cause)[:200] if e.cause else "")
+            except ray.exceptions.RayActorError as e:
+                if getattr(e, "actor_init_failed", False):  # its setup raised: the stage's error, not a lost node
+                    raise
+                # The actor's node was lost. Ray's own task retries can run out before it marks the node dead
+                # (each retry is refused at once), so the scene goes back to the queue, after a pause, up to
+                # run.max_retries times; an actor that is dead for good is replaced.
+                lost[s] = lost.get(s, 0) + 1
+                if lost[s] > env.max_retries:
+                    errors[s] = f"the scene's worker was lost {lost[s]} times: {type(e).__name__}: {e}"
+                    _progress(env, sd.name, s, "failed", message=type(e).__name__)
+                else:
+                    if isinstance(e, ray.exceptions.ActorDiedError):
+                        actors[actors.index(actor)] = actor = new_actor()
+                    time.sleep(min(2.0 ** lost[s], 10.0))
+                    queue.insert(0, s)
             if queue:
                 submit(actor)
     finally:
