@@ -14,9 +14,11 @@ import pytest
 from gdwm.cache import Cache
 
 
+# make test-all: the real understanding branch from scratch (~2-3 min on 2 cores, the largest share of make test's
+# 20-minute budget); make test keeps each stage's own tests and the toy DAG end to end (tests/gdwm/test_run.py)
+@pytest.mark.slow
 def test_gdwm_run_reconstruct_distill_tokenizer_lora_evaluate_qa(tiny_run):
     tmp_path = tiny_run.work  # the run of TINY_RUN from scratch (shared with test_determinism, which only reads it)
-    args = [sys.executable, "-m", "gdwm", "run", *tiny_run.args]
     assert "generating synthetic_mini" in tiny_run.stdout  # the data was absent and made first
     assert "QA per task family" in tiny_run.stdout and "on disk" in tiny_run.stdout  # and its summary printed
     cache = Cache(tmp_path / "cache")
@@ -67,6 +69,16 @@ def test_gdwm_run_reconstruct_distill_tokenizer_lora_evaluate_qa(tiny_run):
     assert [a.path for a in client.list_artifacts(parent.info.run_id, "evaluate_qa")] == [
         "evaluate_qa/predictions.parquet"
     ]
+
+
+@pytest.mark.slow  # two more runs in the tiny run's workdir (~65 s on 2 cores)
+def test_a_rerun_is_all_cache_hits_and_lora_from_the_zoo_trains_nothing(tiny_run):
+    tmp_path = tiny_run.work
+    args = [sys.executable, "-m", "gdwm", "run", *tiny_run.args]
+    cache = Cache(tmp_path / "cache")
+    (lo,) = cache.entries("lora")
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path.resolve()}/mlflow.db")
+    exp = client.get_experiment_by_name("gdwm")
     # a second run is all cache hits
     again = subprocess.run(args, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "nothing to run" in again.stdout
