@@ -18,15 +18,20 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-if TYPE_CHECKING:  # what checkers and IDEs see; EXPORTS below must name the same (tests/gdwm/test_api.py)
-    from gdwm.cli import Command, build_data
-    from gdwm.compare.rounding import mean_of_printed
-    from gdwm.errors import CommandError
-    from gdwm.runner import run_pipeline
-    from gdwm.stage import StageContext, StageDef, stage
-    from gdwm.term import console, err_console
-    from gdwm.tracking import TrackingBackend
-    from gdwm.training import TrainSession, warmup_cosine_lr
+if TYPE_CHECKING:  # what checkers and IDEs see (`as` marks a re-export); EXPORTS names the same, tested
+    from gdwm.cli import Command as Command
+    from gdwm.cli import build_data as build_data
+    from gdwm.compare.rounding import mean_of_printed as mean_of_printed
+    from gdwm.errors import CommandError as CommandError
+    from gdwm.runner import run_pipeline as run_pipeline
+    from gdwm.stage import StageContext as StageContext
+    from gdwm.stage import StageDef as StageDef
+    from gdwm.stage import stage as stage
+    from gdwm.term import console as console
+    from gdwm.term import err_console as err_console
+    from gdwm.tracking import TrackingBackend as TrackingBackend
+    from gdwm.training import TrainSession as TrainSession
+    from gdwm.training import warmup_cosine_lr as warmup_cosine_lr
 
 EXPORTS = {
     "stage": "gdwm.stage",
@@ -45,27 +50,13 @@ EXPORTS = {
 }
 """Name -> the module that defines it (a literal: the fingerprint reads it without importing this module)."""
 
-__all__ = [  # noqa: RUF022 (the order of EXPORTS)
-    "stage",
-    "StageContext",
-    "StageDef",
-    "TrainSession",
-    "warmup_cosine_lr",
-    "Command",
-    "build_data",
-    "CommandError",
-    "run_pipeline",
-    "TrackingBackend",
-    "console",
-    "err_console",
-    "mean_of_printed",
-]
+__all__ = sorted(EXPORTS)
 
 
 def __getattr__(name: str) -> Any:
     module = EXPORTS.get(name)
     if module is None:
-        raise AttributeError(f"module 'gdwm.api' has no attribute {name!r} (the API: {', '.join(sorted(EXPORTS))})")
+        raise AttributeError(f"module 'gdwm.api' has no attribute {name!r} (the API: {', '.join(__all__)})")
     value = getattr(importlib.import_module(module), name)
     globals()[name] = value  # later lookups skip this function
     return value

@@ -89,6 +89,8 @@ class ModuleInfo:
     imports: tuple[str, ...]
     """Absolute names of the modules it imports (relative imports resolved), ``from a import b`` as ``a`` and
     ``a.b``; names that turn out not to be modules are dropped on resolution."""
+    exports: tuple[tuple[str, str], ...] | None = None
+    """A facade's ``EXPORTS`` (name, defining module) pairs (see ``closure``); None for any other module."""
 
 
 class _StripDocstrings(ast.NodeTransformer):
@@ -222,17 +224,17 @@ class _FileCache:
             if isinstance(data, dict):
                 self.mem.update(data)
 
-    def get(self, path: Path) -> tuple[str, list] | None:
+    def get(self, path: Path) -> tuple[str, list, dict | None] | None:
         self.load()
         st = path.stat()
         hit = self.mem.get(str(path))
-        if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
-            return hit[2], hit[3]
+        if hit and len(hit) == 5 and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:  # 4 fields: before facades
+            return hit[2], hit[3], hit[4]
         return None
 
-    def put(self, path: Path, digest: str, raw: list) -> None:
+    def put(self, path: Path, digest: str, raw: list, exports: dict | None) -> None:
         st = path.stat()
-        self.mem[str(path)] = [st.st_size, st.st_mtime_ns, digest, raw]
+        self.mem[str(path)] = [st.st_size, st.st_mtime_ns, digest, raw, exports]
         self.dirty = True
 
     def save(self) -> None:
@@ -265,30 +267,32 @@ def _module(name: str, found: _Found) -> ModuleInfo:
         tree = ast.parse(source, str(found.path))
         raw = [[level, mod, list(names)] for level, mod, names in _raw_imports(tree)]
         digest = normalized_digest(tree)
-        _FILES.put(found.path, digest, raw)
+        exports = _facade_exports(tree)
+        _FILES.put(found.path, digest, raw, exports)
     else:
-        digest, raw = hit
+        digest, raw, exports = hit
     imports = _absolute(((lvl, m, tuple(n)) for lvl, m, n in raw), name, found.is_package)
-    return ModuleInfo(name, shown, digest, imports)
+    return ModuleInfo(name, shown, digest, imports, None if exports is None else tuple(sorted(exports.items())))
 
 
-@cache
-def _facade_exports(path: Path, mtime_ns: int) -> dict[str, str] | None:
+def _facade_exports(tree: ast.Module) -> dict[str, str] | None:
     """``EXPORTS`` (name -> defining module) of a facade module: one that defines a module-level ``__getattr__`` and a
     literal dict ``EXPORTS`` (``gdwm.api``); None for any other module."""
-    tree = ast.parse(path.read_bytes(), str(path))
-    getattr_ = any(isinstance(n, ast.FunctionDef) and n.name == "__getattr__" for n in tree.body)
+    if not any(isinstance(n, ast.FunctionDef) and n.name == "__getattr__" for n in tree.body):
+        return None
     for n in tree.body:
         target = n.targets[0] if isinstance(n, ast.Assign) and len(n.targets) == 1 else getattr(n, "target", None)
-        if getattr_ and isinstance(target, ast.Name) and target.id == "EXPORTS" and n.value is not None:
+        if isinstance(target, ast.Name) and target.id == "EXPORTS" and n.value is not None:
             return dict(ast.literal_eval(n.value))
     return None
 
 
-def _exports(found: _Found | None) -> dict[str, str] | None:
+def _exports(name: str, found: _Found | None) -> dict[str, str] | None:
+    """A first-party facade's exports, from the per-file cache (a warm launch parses nothing)."""
     if found is None or found.path is None or not found.first_party:
         return None
-    return _facade_exports(found.path, found.path.stat().st_mtime_ns)
+    exports = _module(name, found).exports
+    return None if exports is None else dict(exports)
 
 
 def closure(modules: Iterable[str], extra_first_party: Iterable[str] = ()) -> tuple[dict[str, ModuleInfo], set[str]]:
@@ -310,16 +314,16 @@ def closure(modules: Iterable[str], extra_first_party: Iterable[str] = ()) -> tu
         found = _find(name, extra)
         if found is None:  # ``from pkg import function``: not a module, unless a facade hands it on
             parent, _, attr = name.rpartition(".")
-            exports = _exports(_find(parent, extra)) if parent else None
+            exports = _exports(parent, _find(parent, extra)) if parent else None
             if exports is not None and attr in exports:
                 todo.append(exports[attr])
             continue
         if not found.first_party:
             third.add(name.partition(".")[0])
             continue
-        if _exports(found) is not None:
-            continue
         info = _module(name, found)
+        if info.exports is not None:
+            continue
         seen[name] = info
         parts = name.split(".")
         todo += [".".join(parts[:i]) for i in range(1, len(parts))]

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from gdwm.cache import Cache
+from tests.gdwm.test_cluster_sim import _placement
 from tests.pipelines.conftest import TINY_RUN, gdwm_cli
 
 GEN = ["stage/diffusion_vae=tiny", "stage/diffusion=tiny"]
@@ -26,14 +27,9 @@ def test_tiny_pipelines_train_on_the_sim_clusters_fake_gpus(tmp_path):
     assert "head + 2 worker node(s) x 2 CPU, 2 GPU, token auth on" in r.stdout
     if not torch.cuda.is_available():
         assert "stages placed on GPUs run their CPU kernels" in r.stdout
-    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("sim placement: "))
+    placed = _placement(r.stdout)
     # tokenizer, lora and diffusion: a Ray Train group of 2 workers (1 fake GPU each) per stage
-    counts: dict[str, int] = {}
-    for node in line.removeprefix("sim placement: ").split("; "):
-        for actor in node.partition(": ")[2].split(", "):
-            cls, n = actor.rsplit(" x", 1)
-            counts[cls] = counts.get(cls, 0) + int(n)
-    assert counts["RayTrainWorker"] == 6, line
+    assert sum(p.get("RayTrainWorker", 0) for p in placed.values()) == 6, placed
     client = mlflow.MlflowClient(f"sqlite:///{work.resolve()}/mlflow.db")
     exp = client.get_experiment_by_name("gdwm")
     runs = {
