@@ -8,6 +8,12 @@ Layout under the cache root (any ``pyarrow.fs`` URI, or a plain local path)::
     <root>/<stage>/<key[:2]>/.trash-<key12>-<uuid>  a corrupt entry moved aside, being deleted
     <root>/<stage>/.bases/<base>/<key>              index: the entries of one code-free key (``cache.reuse=all``)
     <root>/<stage>/.used/<key>                      unix time of the entry's latest cache hit (``gdwm cache gc``)
+    <root>/.gdwm-cache                              the root is gdwm's (``gdwm.owned``): written with the first entry
+
+A manifest comes from a store others may write to (a shared bucket), so every path in it is a plain relative path
+(``plain_relpath``: no ``..``, no absolute path; pyarrow's S3 filesystem would resolve ``a/../../b`` to a key outside
+the entry, and a download would write outside the local copy), and walks of an entry list a symlink as itself,
+never its target (an entry holding one is recomputed).
 
 Written here because no maintained library publishes verified directories atomically through ``pyarrow.fs``.
 Object stores (S3, GCS, Azure) cannot rename directories, so there (and on any filesystem not known to rename
@@ -34,6 +40,7 @@ import math
 import os
 import re
 import shutil
+import stat
 import time
 import urllib.parse
 import uuid
@@ -63,6 +70,7 @@ _AWS_AUTH_ERRORS = frozenset(
 _STAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 _KEY_RE = re.compile(r"[0-9a-f]{64}")
 _ABSENT = pafs.FileType.NotFound
+_KINDS = {stat.S_IFREG: pafs.FileType.File, stat.S_IFDIR: pafs.FileType.Directory}
 
 
 def _plain(obj: Any, path: str) -> Any:
@@ -109,12 +117,25 @@ def cache_key(
     return hashlib.sha256(canonical_json(payload).encode()).hexdigest()
 
 
+def plain_relpath(path: str) -> bool:
+    """Whether ``path`` names a place inside a directory whatever the filesystem makes of it: relative, posix
+    separators, no empty, ``.`` or ``..`` component (pyarrow's S3 filesystem normalises ``a/../../b`` to a key
+    outside the entry), no backslash or NUL."""
+    parts = path.split("/")
+    return bool(path) and not ({"", ".", ".."} & set(parts)) and "\\" not in path and "\x00" not in path
+
+
 @dataclass(frozen=True)
 class FileEntry:
     path: str
-    """Path relative to the entry directory, posix separators."""
+    """Path relative to the entry directory, posix separators (a plain relative path: ``plain_relpath``)."""
     sha256: str
     size: int
+
+    def __post_init__(self) -> None:
+        # a manifest comes from a store others may write to (a shared bucket): a file it names must stay in the entry
+        if not isinstance(self.path, str) or not plain_relpath(self.path) or self.path == MANIFEST:
+            raise ValueError(f"file {self.path!r}: not a plain relative path inside the entry")
 
 
 @dataclass(frozen=True)
@@ -237,6 +258,7 @@ class Cache:
         self.local = isinstance(self.fs, pafs.LocalFileSystem)
         self.atomic_dirs = self.fs.type_name in RENAMES_DIRS
         self._dirless = self.fs.type_name in OBJECT_STORES
+        self._owned = False
         self.last_invalid: list[tuple[str, str, str]] = []
         """``(stage, key, reason)`` of every bad entry the latest ``lookup`` found and moved aside."""
 
@@ -283,8 +305,32 @@ class Cache:
             return None, f"{MANIFEST}: names {m.stage}/{m.key[:12]}, expected {stage}/{key[:12]}"
         return m, None
 
+    def walk(self, d: str) -> list[pafs.FileInfo]:
+        """Every file and directory under ``d`` (none when absent), never following a symlink: on a local disk a
+        symlink is listed as itself, type ``Unknown`` (pyarrow's recursive listing would walk into its target)."""
+        if not self.local:
+            return self.fs.get_file_info(pafs.FileSelector(d, recursive=True, allow_not_found=True))
+        out, stack = [], [d]
+        while stack:
+            try:
+                it = os.scandir(stack.pop())
+            except (FileNotFoundError, NotADirectoryError):
+                continue
+            with it:
+                for e in it:
+                    st = e.stat(follow_symlinks=False)
+                    kind = _KINDS.get(stat.S_IFMT(st.st_mode), pafs.FileType.Unknown)  # a symlink is Unknown
+                    if kind == pafs.FileType.Directory:
+                        stack.append(e.path)
+                    size = st.st_size if kind == pafs.FileType.File else None
+                    out.append(pafs.FileInfo(e.path, kind, mtime_ns=st.st_mtime_ns, size=size))
+        return out
+
     def _verify(self, m: Manifest, d: str) -> str | None:
-        infos = self.fs.get_file_info(pafs.FileSelector(d, recursive=True))
+        infos = self.walk(d)
+        odd = sorted(i.path[len(d) + 1 :] for i in infos if i.type == pafs.FileType.Unknown)
+        if odd:  # a symlink (to '/', say) or a special file: an entry holds its bytes itself
+            return f"{odd[0]}: a symlink or special file, not a regular file"
         found = {i.path[len(d) + 1 :]: i.size for i in infos if i.type == pafs.FileType.File}
         found.pop(MANIFEST, None)
         for fe in m.files:
@@ -418,6 +464,14 @@ class Cache:
             self.invalidate(stage, key)
         elif not self.atomic_dirs and (theirs := self.lookup(stage, key)) is not None:
             return theirs
+        if not self._owned:  # the first entry marks the root as gdwm's; a root holding anything else is refused
+            from gdwm.owned import NotOurs, own_cache
+
+            try:
+                own_cache(self, create=True)
+            except NotOurs as e:
+                raise CacheError(f"stage {stage} key {key[:12]}: {e}") from None
+            self._owned = True
         parent = d.rsplit("/", 1)[0]
         work = f"{parent}/.tmp-{key[:12]}-{uuid.uuid4().hex}" if self.atomic_dirs else d
         if not self.atomic_dirs:
@@ -509,9 +563,12 @@ class Cache:
         try:
             tmp.mkdir(parents=True)
             for fe in m.files:
-                (tmp / fe.path).parent.mkdir(parents=True, exist_ok=True)
+                target = tmp / fe.path
+                if not target.resolve().is_relative_to(tmp.resolve()):  # FileEntry refuses such paths already
+                    raise CacheError(f"stage {m.stage} key {m.key[:12]}: {fe.path}: outside the entry")
+                target.parent.mkdir(parents=True, exist_ok=True)
                 try:
-                    with self.fs.open_input_stream(f"{d}/{fe.path}") as fin, open(tmp / fe.path, "wb") as fout:
+                    with self.fs.open_input_stream(f"{d}/{fe.path}") as fin, open(target, "wb") as fout:
                         digest = _sha256(fin, fout)[0]
                 except OSError as e:
                     raise self._store_error(
@@ -544,11 +601,16 @@ class Cache:
         """Every complete manifest (not verified), of one stage or all, ordered by stage then creation time."""
         out = []
         try:
-            stages = [stage] if stage else [i.base_name for i in self._ls(self.root)]
+            stages = (
+                [stage] if stage else [i.base_name for i in self._ls(self.root) if _STAGE_RE.fullmatch(i.base_name)]
+            )
             for s in stages:
                 for shard in self._ls(f"{self.root}/{s}"):
                     for e in self._ls(shard.path):
-                        if (m := self._load(s, e.base_name, e.path)[0]) is not None:
+                        # names from a listing, checked as names: never a path built from what a store returned
+                        if not _KEY_RE.fullmatch(e.base_name) or shard.base_name != e.base_name[:2]:
+                            continue
+                        if (m := self._load(s, e.base_name, self._dir(s, e.base_name))[0]) is not None:
                             out.append(m)
         except OSError as e:
             raise self._store_error(

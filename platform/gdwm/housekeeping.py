@@ -36,6 +36,7 @@ from omegaconf import DictConfig
 from rich.table import Table
 
 from gdwm.cache import CACHE_KEYS, MANIFEST, USED_DIR, Cache, Manifest, cache_key, canonical_json
+from gdwm.owned import CACHE_MARKER, NotOurs, own_cache
 from gdwm.term import console, err_console
 
 log = logging.getLogger(__name__)
@@ -220,7 +221,7 @@ def scan(cache: Cache, stage: str | None = None, now: float | None = None) -> Sc
     leftovers: list[Leftover] = []
     for s in stages:
         base = f"{cache.root}/{s}"
-        infos = cache.fs.get_file_info(pafs.FileSelector(base, recursive=True, allow_not_found=True))
+        infos = cache.walk(base)  # never into a symlink's target
         items: dict[str, list[int | float | None]] = {}  # <shard>/<name> -> [size, newest mtime]
         markers: dict[str, tuple[str, float | None, int]] = {}  # key -> (path, mtime, size)
         for info in infos:
@@ -547,6 +548,8 @@ def gc(
     """Plan with ``plan_gc`` and, unless ``limits.dry_run``, delete (see the module docstring for the safety rules);
     a dry run reports what it would delete in ``deleted``."""
     now = time.time() if now is None else now
+    if own(cache) == "empty":
+        return GcResult(GcPlan([], [], []), [], [], [])
     found = scan(cache, stage, now)
     try:
         refs = references(tracking_uri, found.entries)
@@ -579,6 +582,19 @@ def gc(
                 cache.fs.delete_dir(x.path)
             removed.append(x)
     return GcResult(plan, deleted, skipped, removed, refs.warnings)
+
+
+def own(cache: Cache) -> str:
+    """``gdwm.owned.own_cache`` for a command that deletes: a root gdwm did not create is a ``UsageError`` (exit 2);
+    one an older gdwm wrote is marked, and said so."""
+    try:
+        state = own_cache(cache, create=False)
+    except NotOurs as e:
+        raise UsageError(f"{e}; gc and invalidate act only on a directory gdwm created, and deleted nothing") from None
+    if state == "legacy":
+        err_console.print(f"gdwm cache: {cache.uri} has gdwm's layout but no {CACHE_MARKER} (an older gdwm): marked "
+                          "it as a gdwm cache", markup=False)  # fmt: skip
+    return state
 
 
 def _republished(cache: Cache, e: Entry) -> bool:
@@ -730,6 +746,7 @@ def cmd_gc(cfg: DictConfig, argv: list[str]) -> int:
 def cmd_invalidate(cfg: DictConfig, _argv: list[str]) -> int:
     cache = Cache(cfg.cache.uri)
     stage = _stage_arg(cache, cfg, required=True)
+    own(cache)
     prefix = str(cfg.args.get("key") or "")
     if not _PREFIX_RE.fullmatch(prefix):
         raise UsageError(f"args.key={prefix or '?'}: give the entry's key or a prefix of >= 8 hex characters")
@@ -745,11 +762,7 @@ def cmd_invalidate(cfg: DictConfig, _argv: list[str]) -> int:
         what = f"{len(matches)} entries of stage {stage} ({shown}); give more characters" if matches else "no entry"
         raise UsageError(f"args.key={prefix}: matches {what}" + ("" if matches else f" of stage {stage}"))
     key = matches[0]
-    size = sum(
-        i.size
-        for i in cache.fs.get_file_info(pafs.FileSelector(f"{shard}/{key}", recursive=True))
-        if i.type == pafs.FileType.File
-    )
+    size = sum(i.size for i in cache.walk(f"{shard}/{key}") if i.type == pafs.FileType.File)
     cache.invalidate(stage, key)
     with contextlib.suppress(FileNotFoundError):
         cache.fs.delete_file(cache.used_marker(stage, key))

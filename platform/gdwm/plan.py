@@ -241,13 +241,30 @@ def compose(
         t.settings = env_settings(t.cfg, meta)
         t.pending_data = meta.get("pending")
         t.settings |= code_settings(t.cfg, t.pipe, t.order, here)
-        entries = seen.setdefault(t.settings["cache_uri"], _Entries(Cache(t.settings["cache_uri"])))
+        uri = t.settings["cache_uri"]
+        first = uri not in seen
+        entries = seen.setdefault(uri, _Entries(Cache(uri)))
         t.plan, t.keys = plan_keys(t.pipe, t.order, t.cfg, t.env(), entries)
+        if first:
+            check_cache_owned(entries.cache, here)
     if refused:
         rows = "".join(f"\n  row '{label}': " + "\n    ".join(lines) for label, lines in refused.items())
         runnable = list(dict.fromkeys(t.label for t in trials if t.label not in refused))
         hint = f'\nrun the other rows alone with "sweep.only={runnable!r}"' if runnable else ""
         raise PlanError(f"{where}: {lacks}:{rows}{hint}")
+
+
+def check_cache_owned(cache: Cache, where: str) -> None:
+    """``PlanError`` (exit 2) when ``cache.uri`` holds what gdwm did not create (``gdwm.owned``): a launch would fill
+    another tool's directory, or a home directory, with stage entries."""
+    from gdwm.owned import NotOurs, cache_state
+
+    try:
+        cache_state(cache)
+    except NotOurs as e:
+        raise PlanError(f"{where}: {e}; point cache.uri at an empty or new directory, or at a gdwm cache") from None
+    except OSError as e:
+        raise cache._store_error(e, f"cache {cache.uri}: listing its top level") from None
 
 
 def check_shapes(pipe: Pipeline, order: list[str], cfg: DictConfig, where: str | None) -> None:

@@ -12,6 +12,7 @@ import pytest
 from pyarrow.fs import FileType
 
 from gdwm.cache import MANIFEST, Cache, CacheError, FileEntry, Manifest, cache_key, canonical_json
+from gdwm.owned import mark_cache
 
 CONFIG = {"lora": {"rank": 8, "alpha": 16.0, "targets": ("q_proj", "v_proj")}, "lr": 0.1}
 UPSTREAM = {"tokenizer": "a" * 64}
@@ -189,6 +190,24 @@ def test_incomplete_entries_are_reported(tmp_path, mutate, reason):
     assert not Path(cache.entry_uri("lora", key)).exists()
 
 
+@pytest.mark.parametrize("target", ["/", "outside"])
+def test_a_symlink_in_an_entry_is_refused_never_followed(tmp_path, target):
+    """A stray symlink (to '/', or to a directory outside the cache) inside an entry: the lookup lists the link
+    itself, never what it points to (a walk of '/' hangs or fails the run), and the entry is recomputed."""
+    outside = tmp_path / "outside"
+    (outside / "deep").mkdir(parents=True)
+    (outside / "deep" / "secret.txt").write_text("not the cache's")
+    cache = Cache(tmp_path / "cache")
+    key = key_of()
+    publish(cache, make_src(tmp_path / "src"))
+    entry = Path(cache.entry_uri("lora", key))
+    (entry / "sub" / "stray").symlink_to(target if target == "/" else outside)
+    assert cache.lookup("lora", key) is None
+    assert cache.last_invalid == [("lora", key, "sub/stray: a symlink or special file, not a regular file")]
+    assert not entry.exists() and (outside / "deep" / "secret.txt").read_text() == "not the cache's"
+    assert cache.lookup("lora", publish(cache, tmp_path / "src").key) is not None
+
+
 def test_truncated_or_foreign_manifest_is_absent(tmp_path):
     cache = Cache(tmp_path / "cache")
     key = key_of()
@@ -212,6 +231,7 @@ def test_truncated_or_foreign_manifest_is_absent(tmp_path):
 
 def test_publish_replaces_an_invalid_entry(tmp_path):
     cache = Cache(tmp_path / "cache")
+    mark_cache(cache)  # gdwm's cache (a root holding nothing but an entry without manifest is nobody's)
     key = key_of()
     entry = Path(cache.entry_uri("lora", key))
     entry.mkdir(parents=True)

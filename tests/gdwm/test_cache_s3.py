@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
+import posixpath
 import re
 import subprocess
 import time
@@ -82,9 +84,10 @@ def test_publish_verify_materialize_match_a_local_twin(s3, tmp_path):
     m_local, m_s3 = publish(local, src), publish(remote, src)
     assert dataclasses.replace(m_s3, created_at=m_local.created_at) == m_local
     key = key_of()
-    # the entry's files and its manifest, nothing else: no directory objects, no temp objects
+    # the entry's files and its manifest, nothing else (but the root's marker): no directory or temp objects
     objects = s3.objects("twin")
-    assert sorted(objects) == sorted(f"{entry_prefix('twin', key)}/{p}" for p in [*FILES, MANIFEST])
+    assert sorted(objects) == sorted(["twin/.gdwm-cache", *(f"{entry_prefix('twin', key)}/{p}" for p in
+                                                            [*FILES, MANIFEST])])  # fmt: skip
     assert Manifest.from_json(objects[f"{entry_prefix('twin', key)}/{MANIFEST}"].decode()) == m_s3
     assert remote.entries() == [m_s3] and remote.entries("lora") == [m_s3]
     assert remote.lookup("lora", key) == m_s3 and remote.last_invalid == []
@@ -118,6 +121,36 @@ def test_flipped_byte_on_s3_is_caught_and_the_entry_removed(s3, tmp_path, caplog
     assert "moving the entry aside to recompute" in caplog.text
     assert [k for k in s3.objects("flip") if f"/{m.key}/" in k] == []
     assert cache.entries() == []
+
+
+@pytest.mark.parametrize("evil", ["../../../escaped.txt", "sub/../../../../escaped.txt", "/tmp/escaped.txt"])
+@pytest.mark.parametrize("verify", [True, False])
+def test_a_manifest_naming_a_path_outside_its_entry_writes_nothing_outside(s3, tmp_path, evil, verify):
+    """Someone with write access to the bucket adds a file ``../../../escaped.txt`` to an entry's manifest and puts
+    the object where pyarrow would read it (it normalises the ``..``): the entry is refused, moved aside and
+    recomputed; nothing is written outside the local cache, whether or not lookups re-hash."""
+    prefix = f"evil-{len(evil)}-{verify}"
+    cache = Cache(s3.uri(prefix))
+    m = publish(cache, make_src(tmp_path / "src"))
+    payload = b"echo pwned\n"
+    doctored = json.loads(m.to_json())
+    doctored["files"].append({"path": evil, "sha256": hashlib.sha256(payload).hexdigest(), "size": len(payload)})
+    entry, client = entry_prefix(prefix, m.key), s3.client()
+    client.put_object(Bucket=BUCKET, Key=f"{entry}/{MANIFEST}", Body=json.dumps(doctored).encode())
+    for where in {f"{entry}/{evil}", posixpath.normpath(f"{entry}/{evil}").lstrip("/")}:  # as listed and as read
+        client.put_object(Bucket=BUCKET, Key=where, Body=payload)
+    hit = cache.lookup("lora", m.key, verify=verify)  # what the next `gdwm run` does with the entry
+    if hit is not None:
+        cache.materialize(hit)
+    written = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*") if p.is_file())
+    assert [p for p in written if not p.startswith(("src/", "local-copies/"))] == []
+    assert not Path("/tmp/escaped.txt").exists()
+    assert hit is None
+    assert cache.last_invalid == [("lora", m.key, f"{MANIFEST}: unreadable (file {evil!r}: not a plain relative "
+                                                  "path inside the entry)")]  # fmt: skip
+    assert cache.entries() == []  # moved aside: the next run recomputes it
+    with pytest.raises(ValueError, match="not a plain relative path inside the entry"):
+        Manifest.from_json(json.dumps(doctored))  # nothing can hand materialize() such a manifest
 
 
 # --- credentials and endpoint -------------------------------------------------------------------------------------
@@ -217,19 +250,20 @@ def test_endpoint_down_mid_publish_leaves_no_entry(s3, tmp_path, monkeypatch):
         "during "
     )
     left = s3.objects("down")
-    assert sorted(left) == [f"{entry_prefix('down', key)}/adapter.bin"]  # the cleanup could not reach the store
+    # the cleanup could not reach the store
+    assert sorted(left) == ["down/.gdwm-cache", f"{entry_prefix('down', key)}/adapter.bin"]
     assert cache.lookup("lora", key) is None and cache.entries() == [] and cache.last_invalid == []
     found = scan(cache)
     assert found.entries == [] and [(x.kind, x.size) for x in found.leftovers] == [("incomplete", 10000)]
     # a day later gc removes what is left
     store = f"sqlite:///{tmp_path}/mlflow.db"
     r = gc(cache, store, Limits(keep_last=0), grace=0, now=time.time() + 2 * 86400)
-    assert [x.kind for x in r.leftovers_removed] == ["incomplete"] and s3.objects("down") == {}
+    assert [x.kind for x in r.leftovers_removed] == ["incomplete"] and list(s3.objects("down")) == ["down/.gdwm-cache"]
     # and a publish over an interrupted one (a stray object of another output) replaces it whole
     s3.client().put_object(Bucket=BUCKET, Key=f"{entry_prefix('down', key)}/stray.bin", Body=b"old")
     m = publish(cache, tmp_path / "src")
     assert cache.lookup("lora", key) == m and cache.last_invalid == []
-    assert sorted(k for k in s3.objects("down") if "/.used/" not in k) == sorted(
+    assert sorted(k for k in s3.objects("down") if "/.used/" not in k and k != "down/.gdwm-cache") == sorted(
         f"{entry_prefix('down', key)}/{p}" for p in [*FILES, MANIFEST]
     )
 
@@ -248,7 +282,8 @@ def test_gc_on_s3_deletes_unprotected_entries(s3, tmp_path):
     assert sorted(e.key for e in r.deleted) == sorted(m.key for m in ms[:2]) and r.leftovers_removed == []
     assert r.freed == dry.freed > 2 * sum(map(len, FILES.values()))
     assert cache.entries() == [ms[2]] and cache.lookup_base("lora", key_of({"lr": 0.3})) == ms[2]
-    assert {k.split("/")[3] for k in s3.objects("gc") if "/.used/" not in k and "/.bases/" not in k} == {ms[2].key}
+    kept = {k for k in s3.objects("gc") if "/.used/" not in k and "/.bases/" not in k}
+    assert {k.split("/")[3] for k in kept - {"gc/.gdwm-cache"}} == {ms[2].key} and "gc/.gdwm-cache" in kept
 
 
 # --- end to end -------------------------------------------------------------------------------------------------------

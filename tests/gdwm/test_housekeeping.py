@@ -4,6 +4,7 @@ upstream, regression baselines, running runs, the grace period), what it frees (
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -196,6 +197,77 @@ def test_gc_keeps_exactly_what_is_referenced_and_frees_what_it_reports(store, re
     assert rc == 0 and "deleted 0 entries, 0 bytes" in out
 
 
+def foreign_store(root: Path, layout: str) -> dict[str, bytes]:
+    """Another tool's content-addressed store, untouched for 40 days; returns its files' bytes. ``oci``: an OCI image
+    layout (``blobs/sha256/<64 hex>`` files); ``builds``: a build cache (``outputs/<2 hex>/<64 hex>/`` dirs)."""
+    files = {"index.json": b'{"manifests": []}'}
+    for i in range(4):
+        blob = os.urandom(64 + i)
+        digest = hashlib.sha256(blob).hexdigest()
+        files[f"blobs/sha256/{digest}" if layout == "oci" else f"outputs/{digest[:2]}/{digest}/result.bin"] = blob
+    old = time.time() - 40 * DAY
+    for rel, data in files.items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_bytes(data)
+    for p in [root, *root.rglob("*")]:
+        os.utime(p, (old, old))
+    return files
+
+
+@pytest.mark.parametrize("layout", ["oci", "builds"])
+def test_gc_and_invalidate_refuse_a_directory_gdwm_did_not_create(store, tmp_path, capsys, monkeypatch, layout):
+    foreign = tmp_path / "store"
+    files = foreign_store(foreign, layout)
+    first = "blobs/sha256" if layout == "oci" else "index.json"
+    top, _, digest = next(k for k in files if k != "index.json").split("/")[:3]
+    for args in (["gc", "--older-than", "30d"], ["gc", "--keep-last", "0", "args.grace=0s"],
+                 ["invalidate", f"args.stage={top}", f"args.key={digest[:12]}"]):  # fmt: skip
+        rc, out, err = store.cli(capsys, *args, f"cache.uri={foreign}")
+        assert (rc, err.strip()) == (2, (
+            f"gdwm cache {args[0]}: cache.uri={foreign}: not a gdwm cache ({first} is not gdwm's, and there is "
+            "no .gdwm-cache); gc and invalidate act only on a directory gdwm created, and deleted nothing"
+        )), out  # fmt: skip
+    assert {p.relative_to(foreign).as_posix(): p.read_bytes() for p in foreign.rglob("*") if p.is_file()} == files
+    # a launch refuses it too, before anything runs (a typo'd cache.uri must not fill someone's directory)
+    monkeypatch.setenv("GDWM_CONF_PATH", str(Path(__file__).parents[1] / "conf"))
+    rc = main(["run", "--dry-run", "experiment=toy", f"workdir={store.work}", f"cache.uri={foreign}"])
+    assert rc == 2 and f"not a gdwm cache ({first} is not gdwm's" in capsys.readouterr().err
+
+
+def test_a_cache_of_an_older_gdwm_is_recognised_by_its_layout_and_marked(store, tmp_path, capsys):
+    old, new = publish(store.cache, "lora", tmp_path, 1, 100), publish(store.cache, "lora", tmp_path, 2, 100)
+    backdate(store.work / "cache", old, 40)
+    marker = store.work / "cache" / ".gdwm-cache"
+    assert json.loads(marker.read_text())["gdwm"] == "cache"  # written with the first entry
+    marker.unlink()  # as an older gdwm left it
+    rc, out, err = store.cli(capsys, "gc", "--older-than", "30d")
+    assert rc == 0, err
+    assert err.strip() == (
+        f"gdwm cache: {store.work / 'cache'} has gdwm's layout but no .gdwm-cache (an older gdwm): marked it as a "
+        "gdwm cache"
+    )
+    assert keys_on_disk(store.cache) == {new.key} and marker.is_file()
+    # gdwm's layout but no manifest anywhere: not recognised
+    fake = tmp_path / "fake"
+    (fake / "lora" / "ab" / ("ab" + "0" * 62)).mkdir(parents=True)
+    rc, _, err = store.cli(capsys, "gc", "--older-than", "30d", f"cache.uri={fake}")
+    assert rc == 2 and "not a gdwm cache (no .gdwm-cache and no readable gdwm manifest in lora)" in err
+
+
+def test_a_symlink_in_an_entry_is_neither_sized_nor_followed_by_gc(store, tmp_path):
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "big.bin").write_bytes(b"x" * 100_000)
+    m = publish(store.cache, "lora", tmp_path, 1, 100)
+    entry = entry_dir(store.work / "cache", m)
+    size = tree_bytes(entry)
+    (entry / "sub" / "stray").symlink_to(outside)
+    assert [e.size for e in scan(store.cache).entries] == [size]
+    r = gc(store.cache, store.uri, Limits(keep_last=0), grace=0)
+    assert [e.key for e in r.deleted] == [m.key] and r.freed == size
+    assert not entry.exists() and (outside / "big.bin").stat().st_size == 100_000
+
+
 def test_grace_period_and_keep_last_keep_entries(store, referenced):
     e, protected, _, _ = referenced
     refs = references(store.uri, scan(store.cache).entries)
@@ -301,7 +373,7 @@ def test_gc_on_a_remote_filesystem_leaves_an_upload_in_progress(tmp_path, atomic
     assert sorted(x.key for x in r.deleted) == sorted(m.key for m in ms) and r.leftovers_removed == []
     after = sizes()
     assert sum(before.values()) - sum(after.values()) == r.freed + len(repr(used[ms[0].key]))
-    assert list(after) == [f"{uploading}/weights.bin"] and cache.entries() == []
+    assert sorted(after) == ["bucket/cache/.gdwm-cache", f"{uploading}/weights.bin"] and cache.entries() == []
     assert not (tmp_path / "none.db").exists()  # no store: nothing is referenced, and none is created
 
 
@@ -333,7 +405,8 @@ def test_ls_summary_and_one_stage(store, referenced, tmp_path, capsys):
         ms = [m for m in [*e.values(), coded] if m.stage == stage]
         nbytes = sum(tree_bytes(entry_dir(root, m)) for m in ms)
         assert rows[stage][1:2] == [str(len(ms))] and rows[stage][3] == str(nbytes), rows[stage]
-    assert rows["total"][1] == "11" and rows["total"][3] == str(tree_bytes(root))
+    marker = (root / ".gdwm-cache").stat().st_size
+    assert rows["total"][1] == "11" and rows["total"][3] == str(tree_bytes(root) - marker)
     # runs: lora1's and lora2's producers; zoo versions: both; protected: lora1
     assert rows["lora"][5:8] == ["2", "2", "1"]
     assert rows["recon"][5:8] == ["1", "0", "1"]  # the baseline names rec1; no zoo version; rec1 protected
