@@ -386,6 +386,14 @@ def entry_keys(results: Mapping[str, StageResult]) -> dict[str, list[str]]:
     return {n: sorted({k for k, _ in r.scenes.values()}) if r.scenes else [r.key] for n, r in results.items()}
 
 
+def planned_keys(t: Trial) -> dict[str, list[str]]:
+    """Every entry a trial is about to read or publish (per scene where a stage fans out), from its plan."""
+    out: dict[str, set[str]] = {}
+    for r in t.plan:
+        out.setdefault(r.stage, set()).add(r.key)
+    return {n: sorted(keys) for n, keys in out.items()}
+
+
 # ---- the driver loop -------------------------------------------------------------------------------------------
 def _root_cause(e: BaseException) -> BaseException:
     while isinstance(e, ray.exceptions.RayTaskError) and e.cause is not None and e.cause is not e:
@@ -487,6 +495,8 @@ def launch(
     with _launch_lock(cfg, layout), driver_session(cfg) as tracking:
         parent = layout.open(tracking, cfg, rows, trials)
         summary.parent_run_id = parent
+        for t in trials:  # what `gdwm cache gc` keeps while the trial runs; its end replaces it with what it used
+            tracking.log_text(t.run_id, json.dumps(planned_keys(t), indent=1), CACHE_KEYS)
         # on the driver's node, as the tracking actor: a worker node lost mid-run must not take the board along
         here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
         progress = ProgressActor.options(scheduling_strategy=here).remote() if layout.sweep is None else None

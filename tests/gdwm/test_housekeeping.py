@@ -8,6 +8,7 @@ import hashlib
 import json
 import os
 import re
+import subprocess
 import time
 from pathlib import Path
 
@@ -240,7 +241,7 @@ def test_a_cache_of_an_older_gdwm_is_recognised_by_its_layout_and_marked(store, 
     marker = store.work / "cache" / ".gdwm-cache"
     assert json.loads(marker.read_text())["gdwm"] == "cache"  # written with the first entry
     marker.unlink()  # as an older gdwm left it
-    rc, out, err = store.cli(capsys, "gc", "--older-than", "30d")
+    rc, _, err = store.cli(capsys, "gc", "--older-than", "30d")
     assert rc == 0, err
     assert err.strip() == (
         f"gdwm cache: {store.work / 'cache'} has gdwm's layout but no .gdwm-cache (an older gdwm): marked it as a "
@@ -515,3 +516,32 @@ def test_parsers():
     assert parse_gc_args(["--keep-last=0", "x=1", "--max-size", "1KiB", "--dry-run"]) == Limits(0, None, 1024, True)
     with pytest.raises(UsageError, match=r"^--max-size: '-5GB' is not a size"):
         parse_gc_args(["--max-size=-5GB"])
+
+
+def test_gc_while_a_run_is_running_keeps_every_entry_it_read_or_published(tmp_path, capsys):
+    """`gdwm cache gc --keep-last 0 args.grace=0s` while a `gdwm run` is held inside lora: the upstream entries the
+    run published (finished stage runs) and is about to read stay, whatever the grace; the run then finishes."""
+    from tests.gdwm.test_run import Toy, _ok
+
+    toy = Toy(tmp_path)
+    proc = subprocess.Popen(toy.args("targets=[lora]", "run.live=false"), env=toy.env(GDWM_TEST_BLOCK="lora"),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        end = time.monotonic() + 240
+        while not (tmp_path / "blocked-lora").exists():
+            assert proc.poll() is None and time.monotonic() < end, proc.communicate()
+            time.sleep(0.2)
+        store = Store(toy.work)
+        before = {(m.stage, m.key) for m in store.cache.entries()}
+        assert {s for s, _ in before} == {"reconstruct", "distill", "tokenizer"} and len(before) == 7
+        rc, out, err = store.cli(capsys, "gc", "--keep-last", "0", "args.grace=0s")
+        assert rc == 0, err
+        assert "deleted 0 entries, 0 bytes" in out and "kept 7 protected entries (running: 7)" in out
+        assert {(m.stage, m.key) for m in store.cache.entries()} == before
+        (tmp_path / "release").touch()
+        out, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    _ok(subprocess.CompletedProcess(proc.args, proc.returncode, out, err))
