@@ -16,7 +16,8 @@ Two claimants cannot both win: a claimant wins only if its listing, taken after 
 claim, so the later of two writes always lists the earlier one. A claim is live while its owner renews ``beat``
 (every ``BEAT_S``) and, for an owner on this host, while its process runs; a claim whose owner died (same host) or
 whose beat is older than ``STALE_S`` (another host: clocks are assumed within ``STALE_S`` of each other) is stale,
-deleted by whoever sees it. Written here because pyarrow.fs has no lock and a lock library (filelock, portalocker)
+deleted by whoever sees it; so is a claim that does not parse, or whose beat is not a finite time within ``STALE_S``
+of now (claims are written whole, renamed into place or in one PUT, so a torn one is never one being written). Written here because pyarrow.fs has no lock and a lock library (filelock, portalocker)
 covers local files only, not the object stores the cache runs on.
 """
 
@@ -25,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import random
 import threading
 import time
@@ -33,7 +35,7 @@ from collections.abc import Callable
 
 import pyarrow.fs as pafs
 
-from gdwm.cache import Cache
+from gdwm.cache import RENAMES_DIRS, Cache
 from gdwm.tracking.owner import owner_is_alive, parse_owner, process_owner
 
 log = logging.getLogger(__name__)
@@ -44,6 +46,21 @@ STALE_S = 120.0
 """A claim not renewed for this long is abandoned (its holder's host died, or its process hangs)."""
 POLL_S = 0.5
 """How often a waiter looks at the key again (it backs off to ``4 * POLL_S``)."""
+
+
+def parse_claim(data: bytes) -> tuple[str, float] | None:
+    """``(owner, beat)`` of a claim file; None for anything else (torn, garbage, a non-finite time): a claim is
+    written whole (renamed into place, or one PUT), so one that does not parse is stale, never one being written."""
+    try:
+        rec = json.loads(data)
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return None
+    if not isinstance(rec, dict) or not isinstance(rec.get("owner"), str):
+        return None
+    beat = rec.get("beat")
+    if isinstance(beat, bool) or not isinstance(beat, int | float) or not math.isfinite(beat):
+        return None
+    return rec["owner"], float(beat)
 
 
 class KeyLock:
@@ -66,8 +83,16 @@ class KeyLock:
 
     # ---- claims ------------------------------------------------------------------------------------------------
     def _write(self) -> None:
-        with self.fs.open_output_stream(self.claim) as f:
-            f.write(json.dumps({"owner": self.owner, "beat": time.time()}).encode())
+        data = json.dumps({"owner": self.owner, "beat": time.time()}).encode()
+        if self.fs.type_name not in RENAMES_DIRS:  # an object store's PUT is atomic: no reader sees half a claim
+            with self.fs.open_output_stream(self.claim) as f:
+                f.write(data)
+            return
+        # written aside and renamed into place, so a claim that does not parse is never one being written
+        part = f"{self.claim}.{uuid.uuid4().hex[:8]}.part"
+        with self.fs.open_output_stream(part) as f:
+            f.write(data)
+        self.fs.move(part, self.claim)
 
     def _others(self) -> list[str]:
         """Owners of the live claims other than ours; stale ones are deleted on the way."""
@@ -78,25 +103,23 @@ class KeyLock:
                 continue
             try:
                 with self.fs.open_input_stream(i.path) as f:
-                    rec = json.loads(f.read())
+                    rec = parse_claim(f.read())
             except FileNotFoundError:
                 continue  # released while we looked
-            except (json.JSONDecodeError, UnicodeDecodeError):
-                rec = {"owner": "", "beat": i.mtime.timestamp() if i.mtime else 0.0}  # a claim being written
-            if self._stale(rec):
-                log.info("lock %s: removing the stale claim of %s", self.where, rec.get("owner"))
+            if rec is None or self._stale(*rec):
+                log.info("lock %s: removing the stale claim %s (%s)", self.where, i.base_name,
+                         f"of {rec[0]}" if rec else "malformed")  # fmt: skip
                 with contextlib.suppress(FileNotFoundError):
                     self.fs.delete_file(i.path)
                 continue
-            live.append(str(rec.get("owner", "")))
+            live.append(rec[0])
         return live
 
     @staticmethod
-    def _stale(rec: dict) -> bool:
-        owner = str(rec.get("owner", ""))
+    def _stale(owner: str, beat: float) -> bool:
         if parse_owner(owner) is not None and not owner_is_alive(owner):
             return True  # its process on this host is gone: no need to wait out STALE_S
-        return time.time() - float(rec.get("beat", 0.0)) > STALE_S
+        return not -STALE_S < time.time() - beat <= STALE_S  # not renewed, or a beat from the future
 
     def _renew(self) -> None:
         while not self._stop.wait(BEAT_S):

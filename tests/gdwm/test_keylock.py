@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import socket
+import threading
 import time
 from pathlib import Path
 
@@ -77,6 +78,36 @@ def test_a_holder_elsewhere_blocks_until_its_beat_goes_stale(tmp_path, monkeypat
         assert not other.exists()
     assert seen == ["node-7:4242:1718000000.00"]  # told once who it waited for
     assert 1.0 < waited < 10 and lock.waited == pytest.approx(waited, abs=0.5)
+
+
+@pytest.mark.parametrize(
+    "claim",
+    [
+        b'{"owner": "node-7:4242:1718000000.00", "beat": NaN}',  # a buggy writer: never older than STALE_S
+        b'{"owner": "node-7:4242:1718000000.00", "beat": Infinity}',
+        b'{"owner": "node-7:4242:1718000000.00", "beat": 1e300}',  # a beat from the far future
+        b'{"owner": "node-7:4242:1718000000.00", "beat": "soon"}',
+        b'{"owner": 7, "beat": 1}',
+        b"[1, 2]",
+        b'{"owner": "node-7:4242:17180',  # torn
+        b"\x00\xff\xfe",
+    ],
+)
+def test_a_claim_that_does_not_parse_or_has_no_finite_time_is_stale(tmp_path, claim):
+    d = tmp_path / ".locks" / "lora" / KEY
+    d.mkdir(parents=True)
+    (d / "00000000000000000001-badclaim.json").write_bytes(claim)
+    seen, held = [], threading.Event()
+
+    def take() -> None:
+        with KeyLock(Cache(tmp_path), "lora", KEY, on_wait=seen.append):
+            held.set()
+
+    taker = threading.Thread(target=take, daemon=True)  # a claim wrongly taken as live would block it for good
+    taker.start()
+    assert held.wait(10), f"still waiting for the claim {claim!r}"
+    taker.join(10)
+    assert seen == [] and list(d.iterdir()) == []  # the bad claim deleted, ours released
 
 
 def test_scope_and_key_are_checked_like_cache_entries(tmp_path):
