@@ -9,6 +9,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import Annotated
+
+from annotated_types import Ge, Gt, Interval
+
+SEED = Interval(ge=0, le=2**32 - 1)
+"""A seed's range (numpy's legacy one, as ``gdwm.knobs.MAX_SEED``; model_zoo imports no platform code)."""
 
 ATTRIBUTES: tuple[str, ...] = ("x", "s", "r", "o", "f")
 """Gaussian attributes of the attribute-aware projection: position, scale, rotation, opacity, feature."""
@@ -35,28 +41,28 @@ class SelectorConfig:
 
     name: str = "driving_aware"
     """Registered selector variant: random, topk_uniform, topk_uniform_similarity, voxel_topk, driving_aware."""
-    k_c: int = 256
+    k_c: Annotated[int, Ge(0)] = 256
     """Number of candidates K_c; missing candidates are padded with invalid tokens."""
-    voxel_size: float = 2.0
+    voxel_size: Annotated[float, Gt(0)] = 2.0
     """Edge of the cubic voxel grid (metres, anchored at the ego origin) of VoxelTopK and uniform spatial sampling."""
-    uniform_fraction: float = 0.5
+    uniform_fraction: Annotated[float, Interval(ge=0, le=1)] = 0.5
     """topk_uniform(_similarity): share of K_c filled by uniform spatial sampling (the rest is ranked)."""
-    similarity_fraction: float = 0.25
+    similarity_fraction: Annotated[float, Interval(ge=0, le=1)] = 0.25
     """topk_uniform_similarity: share of K_c taken by top text-Gaussian similarity (out of the ranked share)."""
-    w_q: float = 1.0
+    w_q: Annotated[float, Ge(0)] = 1.0
     """Weight w_q of the intrinsic quality Q_i in S_i."""
-    w_t: float = 1.0
+    w_t: Annotated[float, Ge(0)] = 1.0
     """Weight w_t of the trajectory relevance T_i in S_i."""
-    sigma_traj: float = 5.0
+    sigma_traj: Annotated[float, Gt(0)] = 5.0
     """Spatial influence range sigma_traj (metres) of the trajectory prior T_i."""
-    seed: int = 0
+    seed: Annotated[int, SEED] = 0
     """Seed of the random variants when the caller passes no generator (gdwm's YAML sets it to the trial seed)."""
     coverage_first: bool = True
     """voxel_topk/driving_aware: on truncation keep VoxelTopK before TopK (False: top K_c of the union by score)."""
     path: PathSource = PathSource.route
     """driving_aware: the ego path of T_i: the planned ``route`` ahead of the ego (the paper's path ahead), or the
     past positions ``extrapolated`` at constant velocity. Never the recorded future poses (see ``PathSource``)."""
-    route_ahead_m: float = 30.0
+    route_ahead_m: Annotated[float, Gt(0)] = 30.0
     """driving_aware with ``path=route``: metres of the route ahead of the ego that become waypoints (1 m apart)."""
 
     def __post_init__(self) -> None:
@@ -90,21 +96,21 @@ class SelectorConfig:
 class AlignmentConfig:
     name: str = "kl"
     """Alignment variant: none | kl."""
-    weight: float = 0.1
+    weight: Annotated[float, Ge(0)] = 0.1
     """lambda_KL, the weight of L_KL in the understanding loss."""
-    warmup_steps: int = 100
+    warmup_steps: Annotated[int, Ge(0)] = 100
     """Linear warm-up alpha(t) = min(1, t / warmup_steps); 0 means alpha = 1 from the first step."""
-    eps: float = 1e-4
+    eps: Annotated[float, Gt(0)] = 1e-4
     """epsilon added to both variances."""
 
 
 @dataclass
 class ProjectionConfig:
-    fourier_features: int = 16
+    fourier_features: Annotated[int, Ge(1)] = 16
     """Rows of the learnable Fourier map B (the position embedding has 2x this many dims)."""
-    fourier_scale: float = 0.05
+    fourier_scale: Annotated[float, Gt(0)] = 0.05
     """Init std of B, in 1/metres (0.05 -> periods of ~20 m)."""
-    mlp_ratio: int = 2
+    mlp_ratio: Annotated[int, Ge(1)] = 2
     """Hidden width of the residual MLP aligner, times H."""
     attributes: tuple[str, ...] = ATTRIBUTES
     """Attributes that enter h~ (a subset of x, s, r, o, f; ablations drop "f")."""
@@ -114,9 +120,9 @@ class ProjectionConfig:
 class FineAdapterConfig:
     name: str = "query_xattn"
     """Fine adapter variant: similarity | query_xattn | identity."""
-    k_f: int = 16
+    k_f: Annotated[int, Ge(1)] = 16
     """World tokens K_f per sample."""
-    heads: int = 4
+    heads: Annotated[int, Ge(1)] = 4
     """Attention heads of query_xattn (must divide H)."""
 
 
@@ -153,27 +159,27 @@ class LLMConfig:
     """Local checkpoint directory for full runs (config.json, safetensors, tokenizer files); never downloaded."""
     tiny: bool = True
     """Build a tiny random model of the same classes and a BPE tokenizer trained on the corpus (``path`` ignored)."""
-    hidden_size: int = 64
+    hidden_size: Annotated[int, Ge(1)] = 64
     """Tiny text model width H (= the vision tower's ``out_hidden_size``)."""
-    num_layers: int = 2
+    num_layers: Annotated[int, Ge(1)] = 2
     """Tiny text model decoder layers."""
-    num_heads: int = 4
+    num_heads: Annotated[int, Ge(1)] = 4
     """Tiny text model attention heads."""
-    num_kv_heads: int = 2
+    num_kv_heads: Annotated[int, Ge(1)] = 2
     """Tiny text model key/value heads (grouped-query attention)."""
-    intermediate_size: int = 128
+    intermediate_size: Annotated[int, Ge(1)] = 128
     """Tiny text model MLP width."""
-    vocab_size: int = 600
+    vocab_size: Annotated[int, Ge(1)] = 600
     """Target BPE vocabulary of the tiny tokenizer, special tokens included (a small corpus may give fewer)."""
-    max_length: int = 384
+    max_length: Annotated[int, Ge(1)] = 384
     """Sequence limit of one sample (prompt + answer) in tokens."""
-    image_max_pixels: int = 16384
+    image_max_pixels: Annotated[int, Ge(1)] = 16384
     """Image processor's upper bound on pixels per image (tiny: small images, few tokens)."""
     dtype: str = "float32"
     """Parameter dtype (``bfloat16`` on CUDA)."""
-    seed: int = 0
+    seed: Annotated[int, SEED] = 0
     """Seed of the tiny flavor's random initialisation (gdwm's YAML sets it to the trial seed)."""
-    pretrain_steps: int = 0
+    pretrain_steps: Annotated[int, Ge(0)] = 0
     """Tiny flavor: full-parameter steps after the random init, standing in for a pretrained checkpoint (what it
     learns from is ``pretrain_on``)."""
     pretrain_on: str = "text"
@@ -181,9 +187,9 @@ class LLMConfig:
     ``instructions``: the training split's (instruction, answer) pairs in the chat template, text only (no images,
     no world tokens), loss on the answer: what an instruction-tuned VLM brings (answer formats, the prior of each
     question kind), never the scene, which the tokenizer and lora stages must learn to read."""
-    pretrain_lr: float = 3e-3
+    pretrain_lr: Annotated[float, Gt(0)] = 3e-3
     """Adam learning rate of that warm-up."""
-    pretrain_batch_size: int = 32
+    pretrain_batch_size: Annotated[int, Ge(1)] = 32
     """Documents per warm-up step."""
 
 
@@ -195,15 +201,15 @@ class DiffusionConfig:
     """Local directory with ``unet/`` and ``vae/`` subfolders (diffusers save_pretrained layout); never downloaded."""
     tiny: bool = True
     """Build tiny random UNet/VAE configs of the same classes (CPU, seconds); ``path`` is ignored."""
-    image_size: tuple[int, int] = (48, 80)
+    image_size: Annotated[tuple[int, int], Ge(1)] = (48, 80)
     """(H, W) the model works at; inputs are resized by the caller."""
-    latent_channels: int = 4
+    latent_channels: Annotated[int, Ge(1)] = 4
     """L: channels of one VAE latent (the target d has 2L)."""
-    unet_channels: tuple[int, ...] = (32, 64)
+    unet_channels: Annotated[tuple[int, ...], Ge(1)] = (32, 64)
     """Tiny UNet ``block_out_channels`` (one down/up block each; all but the first use cross-attention)."""
-    vae_channels: tuple[int, ...] = (16, 32)
+    vae_channels: Annotated[tuple[int, ...], Ge(1)] = (16, 32)
     """Tiny VAE ``block_out_channels`` (downsample factor 2**(len-1))."""
-    cross_attention_dim: int = 64
+    cross_attention_dim: Annotated[int, Ge(1)] = 64
     """Width of C_L (the LLM hidden size); a loaded UNet with another width gets a learned projection."""
     low_level: bool = True
     """Ablation switch: C_I, C_D enter the UNet input (False: zeros in their channels and in the mask). The reference
@@ -211,15 +217,15 @@ class DiffusionConfig:
     Gaussians projected into the target view) and F_theta takes d_ref as an input of its own beside them."""
     high_level: bool = True
     """Ablation switch: C_L enters through cross-attention (False: the learned null token always)."""
-    cond_dropout: float = 0.1
+    cond_dropout: Annotated[float, Interval(ge=0, le=1)] = 0.1
     """Probability of replacing C_L by the null condition in training (classifier-free guidance)."""
-    guidance_scale: float = 2.0
+    guidance_scale: Annotated[float, Ge(0)] = 2.0
     """CFG scale at sampling (1 = off)."""
-    num_train_timesteps: int = 1000
+    num_train_timesteps: Annotated[int, Ge(1)] = 1000
     """Diffusion steps of the training schedule."""
-    sample_steps: int = 20
+    sample_steps: Annotated[int, Ge(1)] = 20
     """DDIM steps at sampling."""
-    max_depth: float = 80.0
+    max_depth: Annotated[float, Gt(0)] = 80.0
     """Depth in metres mapped to +1 in pseudo-RGB (farther is clamped)."""
-    seed: int = 0
+    seed: Annotated[int, SEED] = 0
     """Seed of the tiny flavor's random initialisation (and of a fresh null token)."""

@@ -4,6 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from annotated_types import Interval
+
+SEED = Interval(ge=0, le=2**32 - 1)
+"""A seed's range (numpy's legacy one, as ``gdwm.api.SEED``; the data layer imports nothing of gdwm)."""
+
 
 @dataclass
 class DatasetConfig:

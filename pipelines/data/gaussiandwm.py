@@ -43,8 +43,10 @@ from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+from annotated_types import Ge, Interval
 
 from pipelines.data.config import DatasetConfig
 from pipelines.data.gaussiandwm_clip import ClipChecker
@@ -93,15 +95,15 @@ class ReleaseConfig(DatasetConfig):
     """Folder (relative to the source) that world records' ``target_latent_pack_path`` is relative to."""
     clip_text_root: str = ""
     """Folder (relative to the source) that QA records' ``clip_text_embed_path`` is relative to."""
-    feature_dim: int = 3
+    feature_dim: Annotated[int, Ge(1)] = 3
     """Width of ``_language_feature`` (the compact feature code); other widths are an error."""
     pose_dir: str = ""
     """Optional folder (relative to the source) of world->ego pose files; empty keeps the release's frame."""
     pose_template: str = "{scene_idx}.txt"
     """File name of a scene's pose file inside ``pose_dir``."""
-    clip_dim: int = 512
+    clip_dim: Annotated[int, Ge(1)] = 512
     """Width of a CLIP text feature (the release's shards are [N, 512]); other widths are an error."""
-    latent_chw: list[int] = field(default_factory=lambda: [4, 56, 96])
+    latent_chw: Annotated[list[int], Ge(1)] = field(default_factory=lambda: [4, 56, 96])
     """[C, H, W] of a target latent in the packs (the release's: SVD latents of 768x448 frames)."""
     insert_gauss_token: bool = True
     """Insert ``<gauss>`` at the head of the first user turn, as the release's loader inserts its Gaussian item
@@ -109,7 +111,7 @@ class ReleaseConfig(DatasetConfig):
     split_overlap: str = "warn"
     """An unchanged record in both train and val (the release's examples do this): ``warn`` keeps both copies,
     ``drop_from_train`` keeps the val copy only, ``error`` refuses the import. Every policy names the records."""
-    val_fraction: float = 0.1
+    val_fraction: Annotated[float, Interval(ge=0, le=1)] = 0.1
     """Share of scenes (the last, by id) whose records go to ``val`` when neither record nor file name says."""
     task_map: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_TASK_MAP))
     """``qa_group`` or ``"<qa_group>/<qa_subtask>"`` -> task family (rdp, vg2d, vg3d, plan, traj)."""

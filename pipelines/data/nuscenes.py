@@ -21,8 +21,10 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+from annotated_types import Ge, Interval
 
 from pipelines.data.config import DatasetConfig
 from pipelines.data.layout import (
@@ -58,17 +60,17 @@ class NuScenesConfig(DatasetConfig):
     """Table folder under the source: ``v1.0-mini`` or ``v1.0-trainval``."""
     cameras: list[str] = field(default_factory=lambda: list(CAMERAS))
     """Cameras to convert (nuScenes channel names)."""
-    width: int = 400
+    width: Annotated[int, Ge(1)] = 400
     """Stored image width; 400x225 is a quarter of nuScenes' 1600x900 (same 16:9), readable for grounding."""
-    height: int = 225
+    height: Annotated[int, Ge(1)] = 225
     """Stored image height; intrinsics are scaled to it."""
-    max_scenes: int = 0
+    max_scenes: Annotated[int, Ge(0)] = 0
     """Convert at most this many scenes (after ``scenes``, in name order); 0 = all."""
     scenes: list[str] = field(default_factory=list)
     """Scene names to convert (e.g. ``scene-0061``); empty = every scene of the version."""
     lidar: bool = True
     """Write ``LIDAR_TOP`` points per frame."""
-    val_fraction: float = 0.2
+    val_fraction: Annotated[float, Interval(ge=0, le=1)] = 0.2
     """Share of the converted scenes (the last, by name) recorded as ``val`` in ``dataset.json``."""
 
 

@@ -4,6 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import Annotated
+
+from annotated_types import Ge, Gt, Interval
+
+from gdwm.api import SEED
 
 
 class Encoder(StrEnum):
@@ -36,30 +41,30 @@ class DistillConfig:
     """Local checkpoint directory of ``qwen3_vl_vision``."""
     encoder_tiny: bool = False
     """Use the encoder's tiny random flavor (tests, smoke runs)."""
-    d_f: int = 64
+    d_f: Annotated[int, Ge(1)] = 64
     """Feature dimension of ``daisy`` and ``langsplat_proxy`` (the Qwen encoder's is fixed by its checkpoint)."""
     feature_tokenizer: FeatureTokenizer = FeatureTokenizer.foundation
     """Compact code variant: ``foundation`` (``d_z`` dims) or ``langsplat3`` (3 dims, like the public release)."""
-    d_z: int = 16
+    d_z: Annotated[int, Ge(1)] = 16
     """Code dimension of ``foundation``."""
-    ae_hidden: int = 128
+    ae_hidden: Annotated[int, Ge(1)] = 128
     """Hidden width of E_z / D_F."""
-    ae_steps: int = 400
+    ae_steps: Annotated[int, Ge(0)] = 400
     """Adam steps of the autoencoder on pixel features (L_ae)."""
-    ae_lr: float = 0.003
+    ae_lr: Annotated[float, Gt(0)] = 0.003
     """Adam lr of the autoencoder."""
-    ae_pixels_per_view: int = 512
+    ae_pixels_per_view: Annotated[int, Ge(1)] = 512
     """Valid pixels sampled per training view for the autoencoder."""
-    distill_steps: int = 200
+    distill_steps: Annotated[int, Ge(0)] = 200
     """Adam steps on the codes z_i."""
-    views_per_step: int = 8
+    views_per_step: Annotated[int, Ge(1)] = 8
     """Training views sampled per step (stochastic L_distill)."""
-    min_weight: float = 0.01
+    min_weight: Annotated[float, Interval(ge=0, lt=1)] = 0.01
     """Compositing weights below this are dropped from the precomputed per-view weight matrices (3x fewer entries,
     about 1% of the rendered mass)."""
-    distill_lr: float = 0.05
+    distill_lr: Annotated[float, Gt(0)] = 0.05
     """Adam lr of the codes."""
-    min_alpha: float = 0.5
+    min_alpha: Annotated[float, Interval(ge=0, le=1)] = 0.5
     """Pixels count in Omega_v only where the Gaussians cover them (rendered alpha >= this) and E_F is defined."""
-    seed: int = 0
+    seed: Annotated[int, SEED] = 0
     """Seed of pixel sampling and initialisation."""

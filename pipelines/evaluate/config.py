@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import Annotated
+
+from annotated_types import Ge, Gt, Interval
 
 
 class FuturePoses(StrEnum):
@@ -67,11 +70,11 @@ class EvaluateQAConfig:
 
     split: str = "val"
     """QA split that is answered and scored."""
-    batch_size: int = 8
+    batch_size: Annotated[int, Ge(1)] = 8
     """Samples per generate() call."""
-    max_new_tokens: int = 64
+    max_new_tokens: Annotated[int, Ge(1)] = 64
     """Answer length bound (tokens)."""
-    max_samples: int = 0
+    max_samples: Annotated[int, Ge(0)] = 0
     """Score at most N samples of the split (0 = all): an even share per task family, spread over the scenes and
     frames (``pipelines.understanding.data.balanced_subset``)."""
     tasks: list[str] = field(default_factory=list)
@@ -91,17 +94,19 @@ class EvaluateGenConfig:
 
     cameras: list[str] = field(default_factory=lambda: ["CAM_FRONT"])
     """Cameras whose views are targets."""
-    shifts_m: list[float] = field(default_factory=lambda: [1.0, -1.0, 2.0, -2.0, 4.0, -4.0])
+    shifts_m: Annotated[list[float], Interval(ge=-100, le=100)] = field(
+        default_factory=lambda: [1.0, -1.0, 2.0, -2.0, 4.0, -4.0]
+    )
     """Lateral shifts, metres (+ = left); ground truth is re-rendered (synthetic data only)."""
-    horizons_s: list[float] = field(default_factory=lambda: [1.0, 2.0])
+    horizons_s: Annotated[list[float], Gt(0)] = field(default_factory=lambda: [1.0, 2.0])
     """Future horizons, seconds ahead."""
     future_poses: FuturePoses = FuturePoses.recorded
     """Where future targets' camera poses come from: ``recorded`` (the dataset's ego poses, i.e. the trajectory
     QA) or ``predicted`` (the LoRA'd LLM answers the trajectory question from the 4 history frames; scored as
     ``future_pred_<s>s`` against what the camera recorded)."""
-    frames: int = 10
+    frames: Annotated[int, Ge(1)] = 10
     """Frames per held-out scene that are scored (the first N)."""
-    batch_size: int = 8
+    batch_size: Annotated[int, Ge(1)] = 8
     """Views per sampling call."""
     fd_extractor: FdExtractor = FdExtractor.daisy
     """Features of the Fréchet distance: ``daisy`` (``fd_daisy``, approximate) or ``inception`` (FID, needs
@@ -114,5 +119,5 @@ class EvaluateGenConfig:
     """Local I3D TorchScript file of FVD (``i3d_torchscript.pt``, the StyleGAN-V export): given, FVD is computed with
     it (a missing file is an error naming it; never downloaded; trusted input as ``fd_weights``); null: the labelled
     stand-in ``fd_video_daisy`` (DAISY features over the same clips, approximate) is reported instead."""
-    fvd_clip_frames: int = 10
+    fvd_clip_frames: Annotated[int, Ge(1)] = 10
     """Frames per FVD clip: consecutive scored frames of one scene, camera and target (the I3D export needs >= 10)."""

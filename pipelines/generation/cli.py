@@ -11,7 +11,11 @@ import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
+
+from annotated_types import Ge, Gt, Interval
+
+from gdwm.api import SEED
 
 
 @dataclass
@@ -20,17 +24,17 @@ class GenerateArgs:
 
     scene: str | None = None
     """Scene id (required)."""
-    frame: int = 0
+    frame: Annotated[int, Ge(0)] = 0
     """Frame the conditions come from."""
     camera: str = "CAM_FRONT"
     """Camera whose view is shifted or carried forward."""
-    shifts_m: list[float] = field(default_factory=lambda: [-1.0, 1.0])
+    shifts_m: Annotated[list[float], Interval(ge=-100, le=100)] = field(default_factory=lambda: [-1.0, 1.0])
     """Lateral shifts, metres (+ = left); one view each, in this order in the MP4."""
-    horizons_s: list[float] = field(default_factory=list)
+    horizons_s: Annotated[list[float], Gt(0)] = field(default_factory=list)
     """Future horizons, seconds."""
-    seed: int = 0
+    seed: Annotated[int, SEED] = 0
     """Sampling seed (same seed, same output)."""
-    fps: float = 2.0
+    fps: Annotated[float, Gt(0)] = 2.0
     """Frame rate of the MP4."""
 
 
@@ -40,19 +44,19 @@ class EditArgs:
 
     scene: str | None = None
     """Scene id (required)."""
-    frame: int = 0
+    frame: Annotated[int, Ge(0)] = 0
     """First frame of the edited clip."""
-    frames: int = 4
+    frames: Annotated[int, Ge(1)] = 4
     """Frames in the clip (geometry edits apply to every frame's Gaussians, so the clip stays consistent)."""
     camera: str = "CAM_FRONT"
     """Camera of the clip."""
     edit: str | None = None
     """The edit: instruction text or JSON (``pipelines.generation.edits.parse_edit``), e.g. "Change the weather to
     rain." (required)."""
-    seed: int = 0
+    seed: Annotated[int, SEED] = 0
     """Sampling seed; the unedited clip (original Gaussians, no instruction in C_L) uses the same seed, so
     differences come from the edit, carried by the edited Gaussians and by the instruction in C_L."""
-    fps: float = 2.0
+    fps: Annotated[float, Gt(0)] = 2.0
     """Frame rate of the MP4."""
 
 

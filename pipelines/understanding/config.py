@@ -8,6 +8,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import Annotated
+
+from annotated_types import Ge, Gt, Interval
 
 
 class LoraMode(StrEnum):
@@ -25,7 +28,7 @@ class WorldConfig:
     """Foundation-feature distillation on: the feature decoding trains with the adapter, through one feature head
     shared by every scene after the frozen per-scene D_F (so held-out scenes use the trained parameters too).
     False (journal rows 1-4): the decoded features are frozen inputs, like the conference's LangSplat features."""
-    trajectory_frames: int = 4
+    trajectory_frames: Annotated[int, Ge(1)] = 4
     """Ego-trajectory prior of the driving-aware selector with ``model.selector.path=extrapolated``: past ego
     positions over this many frames, extrapolated as far ahead at constant velocity, in the current ego frame (no
     future ground truth enters the input)."""
@@ -37,25 +40,25 @@ class WorldConfig:
 class TrainConfig:
     """One training stage: steps, batch, optimiser, task-aware sampling (Eq. P_m)."""
 
-    steps: int = 300
+    steps: Annotated[int, Ge(0)] = 300
     """Optimiser steps."""
-    batch_size: int = 8
+    batch_size: Annotated[int, Ge(1)] = 8
     """Samples per step (per worker)."""
-    lr: float = 2e-3
+    lr: Annotated[float, Gt(0)] = 2e-3
     """AdamW learning rate of every trainable parameter."""
-    weight_decay: float = 0.0
+    weight_decay: Annotated[float, Ge(0)] = 0.0
     """AdamW weight decay."""
-    warmup_steps: int = 20
+    warmup_steps: Annotated[int, Ge(0)] = 20
     """Linear learning-rate warm-up."""
-    grad_clip: float = 1.0
-    """Gradient-norm clip (<= 0 turns it off)."""
-    task_alpha: float = 0.5
+    grad_clip: Annotated[float, Ge(0)] = 1.0
+    """Gradient-norm clip (0 turns it off)."""
+    task_alpha: Annotated[float, Interval(ge=0, le=1)] = 0.5
     """alpha_s of task-aware sampling P_m = n_m^alpha_s / sum_k n_k^alpha_s (1 = proportional, 0 = uniform)."""
-    log_every: int = 10
+    log_every: Annotated[int, Ge(1)] = 10
     """Log the training loss every N steps."""
-    eval_samples: int = 64
+    eval_samples: Annotated[int, Ge(0)] = 64
     """Held-out (val split) samples scored at the end: LM loss and greedy answers (0 turns it off)."""
-    max_new_tokens: int = 48
+    max_new_tokens: Annotated[int, Ge(1)] = 48
     """Greedy decoding budget of the held-out answers."""
     source: str | None = None
     """Take the stage's model from the model zoo instead of training it, e.g. ``zoo:gdwm-lora@champion`` or
@@ -74,11 +77,11 @@ class LoraStageConfig(TrainConfig):
 
     mode: LoraMode = LoraMode.train
     """``train``, or ``zero_shot``: no training at all and no Gaussian tokens (the conference table's first row)."""
-    rank: int = 16
+    rank: Annotated[int, Ge(1)] = 16
     """LoRA rank r."""
-    alpha: int = 32
+    alpha: Annotated[int, Gt(0)] = 32
     """LoRA alpha (scaling alpha / r)."""
-    dropout: float = 0.05
+    dropout: Annotated[float, Interval(ge=0, lt=1)] = 0.05
     """LoRA dropout."""
     target_modules: list[str] = field(
         default_factory=lambda: ["q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj"]

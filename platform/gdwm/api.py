@@ -7,6 +7,8 @@ is private to it and may change without notice.
   ``build_data`` (a dataset-building command's ``run``), ``run_pipeline`` (a sub-pipeline up to some targets),
   ``TrackingBackend`` (MLflow, for a command's own runs), ``console`` / ``err_console`` (terminal output).
 - Reporting: ``mean_of_printed`` (the average of numbers as a table prints them).
+- Config schemas: ``SEED``, a seed's range for ``typing.Annotated`` fields (``gdwm.knobs``: every numeric knob
+  declares its range with ``annotated_types``).
 
 Names load on first use (``EXPORTS``: name -> defining module), so a light plugin module (a command list read at
 every start) does not pay for Ray Train or MLflow. A stage's code fingerprint follows each imported name to its
@@ -23,6 +25,7 @@ if TYPE_CHECKING:  # what checkers and IDEs see (`as` marks a re-export); EXPORT
     from gdwm.cli import build_data as build_data
     from gdwm.compare.rounding import mean_of_printed as mean_of_printed
     from gdwm.errors import CommandError as CommandError
+    from gdwm.knobs import SEED as SEED
     from gdwm.runner import run_pipeline as run_pipeline
     from gdwm.stage import StageContext as StageContext
     from gdwm.stage import StageDef as StageDef
@@ -47,6 +50,7 @@ EXPORTS = {
     "console": "gdwm.term",
     "err_console": "gdwm.term",
     "mean_of_printed": "gdwm.compare.rounding",
+    "SEED": "gdwm.knobs",
 }
 """Name -> the module that defines it (a literal: the fingerprint reads it without importing this module)."""
 

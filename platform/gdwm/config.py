@@ -18,7 +18,7 @@ from enum import StrEnum
 from functools import cache
 from importlib.metadata import entry_points
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
@@ -27,6 +27,7 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import InterpolationResolutionError, MissingMandatoryValue, OmegaConfBaseException
 
 from gdwm.compare.layout import Direction
+from gdwm.knobs import SEED, Ge, Gt, Interval, Len, check_ranges
 from gdwm.simcluster import SimConfig
 
 PLUGIN_GROUP = "gdwm.plugins"
@@ -41,11 +42,11 @@ class ConfigError(Exception):
 class StageResources:
     """Resources of one stage resource class (``cpu``, ``gpu``, ``train``, ``eval``)."""
 
-    num_cpus: float = 1.0
+    num_cpus: Annotated[float, Gt(0)] = 1.0
     """CPUs per task, actor or training worker."""
-    num_gpus: float = 0.0
+    num_gpus: Annotated[float, Ge(0)] = 0.0
     """GPUs per task, actor or training worker (fractions allowed for evaluation)."""
-    num_workers: int = 1
+    num_workers: Annotated[int, Ge(0)] = 1
     """Parallel actors (per-scene stages) or Ray Train workers (training stages); 0 = in-process."""
 
 
@@ -53,11 +54,11 @@ class StageResources:
 class NodeShape:
     """A kind of node of a cluster: what Ray can schedule on each (a head with ``num-cpus: 0`` is not one)."""
 
-    num_cpus: float = 1.0
+    num_cpus: Annotated[float, Ge(0)] = 1.0
     """CPUs Ray schedules on the node."""
-    num_gpus: float = 0.0
+    num_gpus: Annotated[float, Ge(0)] = 0.0
     """GPUs of the node."""
-    count: int = 1
+    count: Annotated[int, Ge(1)] = 1
     """Nodes of this shape."""
 
 
@@ -70,11 +71,11 @@ class ClusterConfig:
     address: str | None = None
     """Ray address (``auto``, ``HOST:PORT`` or ``ray://...``); null starts a local Ray with ``num_cpus`` (or the
     ``sim`` cluster)."""
-    connect_timeout_s: float = 10.0
+    connect_timeout_s: Annotated[float, Gt(0)] = 10.0
     """How long ``address`` may take to answer before the run gives up with one line naming it (exit 1)."""
-    num_cpus: int | None = 2
+    num_cpus: Annotated[int | None, Ge(1)] = 2
     """CPUs of the local Ray (ignored when ``address`` is set)."""
-    num_gpus: int = 0
+    num_gpus: Annotated[int, Ge(0)] = 0
     """GPUs of the local Ray (ignored when ``address`` is set)."""
     sim: SimConfig | None = None
     """A local multi-node Ray cluster gdwm starts and stops itself (``cluster=sim``, see ``gdwm.simcluster``);
@@ -99,12 +100,12 @@ class TrackingConfig:
     """MLflow tracking URI (sqlite file under the workdir by default)."""
     artifact_location: str | None = "${abspath:${workdir}}/mlartifacts"
     """Artifact root for new experiments; null lets the server decide."""
-    experiment: str = "gdwm"
-    """MLflow experiment name."""
+    experiment: Annotated[str, Len(1, 256)] = "gdwm"
+    """MLflow experiment name (a store on PostgreSQL holds at most 256 characters)."""
     single_writer: bool = True
     """Route every write through one process (required for sqlite)."""
-    system_metrics_interval_s: float = 10.0
-    """Sampling interval of MLflow system metrics on stage runs; <= 0 turns them off."""
+    system_metrics_interval_s: Annotated[float, Ge(0)] = 10.0
+    """Sampling interval of MLflow system metrics on stage runs; 0 turns them off."""
 
 
 class ReuseMode(StrEnum):
@@ -158,11 +159,11 @@ class RunSettings:
 
     on_scene_error: SceneErrorPolicy = SceneErrorPolicy.fail
     """Per-scene user errors: ``fail`` the stage after the other scenes finish, or ``skip`` the scene."""
-    max_retries: int = 3
+    max_retries: Annotated[int, Ge(0)] = 3
     """Retries of a task or actor call whose worker process died (user errors are not retried)."""
-    checkpoint_every: int = 1
+    checkpoint_every: Annotated[int, Ge(1)] = 1
     """Training stages report a checkpoint every N steps."""
-    max_failures: int = 2
+    max_failures: Annotated[int, Ge(0)] = 2
     """Ray Train FailureConfig: worker-group restarts from the last checkpoint."""
     plan: bool = False
     """Print the plan (cached / to run / blocked per stage and scene) and exit; same as --dry-run."""
@@ -181,7 +182,7 @@ class UiConfig:
 
     host: str = "127.0.0.1"
     """Interface the UI binds to; 0.0.0.0 exposes it to the network."""
-    port: int = 5000
+    port: Annotated[int, Interval(ge=1, le=65535)] = 5000
     """Port of the UI."""
     url: str | None = None
     """Base URL report links point at; null = http://<host>:<port>."""
@@ -197,10 +198,10 @@ class GdwmConfig:
     """Input directory of import/convert commands."""
     overwrite: bool = False
     """Replace an existing output (e.g. a dataset) instead of refusing."""
-    seed: int = 0
+    seed: Annotated[int, SEED] = 0
     """The trial seed: seeded stages (training, sampling) derive every random stream from it; model configs follow
     it through ``${seed}``. Seed-free stages (reconstruction, distillation) ignore it."""
-    seeds: list[int] | None = None
+    seeds: Annotated[list[int] | None, SEED] = None
     """One trial per seed, for ``gdwm run`` and ``gdwm sweep`` alike (e.g. ``seeds=[0,1,2]``); overrides a sweep's or
     a benchmark's own ``seeds``. null = the sweep's/benchmark's seeds, else ``[seed]``."""
     data: Any = MISSING
@@ -267,7 +268,7 @@ class SweepConfig:
     """Override key -> values; their cartesian product is crossed with every row."""
     baseline: str | None = None
     """Row label the report's deltas are against (default: the first row)."""
-    seeds: list[int] | None = None
+    seeds: Annotated[list[int] | None, SEED] = None
     """Seeds of every row: one trial per (row, grid point, seed); ``seeds=[...]`` on the command line overrides
     them. null = ``[seed]``."""
 
@@ -332,12 +333,12 @@ class BenchmarkConfig:
     become ``perf/<bench>/<metric>``."""
     baseline: str | None = None
     """A run id to compare against; default: the latest run of this suite tagged as baseline."""
-    seeds: list[int] | None = None
+    seeds: Annotated[list[int] | None, SEED] = None
     """Seeds of the evaluation, one trial each; the watched value is their mean (``seeds=[...]`` on the command
     line overrides them). null = ``[seed]``."""
-    alpha: float = 0.05
+    alpha: Annotated[float, Interval(gt=0, lt=1)] = 0.05
     """Significance level of ``test: bootstrap``."""
-    resamples: int = 1000
+    resamples: Annotated[int, Ge(2)] = 1000
     """Bootstrap resamples of ``test: bootstrap``."""
 
 
@@ -410,6 +411,8 @@ def load_config(overrides: list[str] | tuple[str, ...] = (), config_name: str = 
             cfg = compose(config_name=config_name, overrides=list(overrides))
         _check_resolvable(cfg)
         OmegaConf.resolve(cfg)
+        if bad := check_ranges(cfg):  # every numeric knob's range, from its schema (gdwm.knobs)
+            raise ConfigError(f"{bad}.")
     except (HydraException, OmegaConfBaseException) as e:
         raise ConfigError(explain(e)) from e
     except ValueError as e:  # hydra's own ValueErrors, e.g. `cluster=null` for a config group

@@ -17,8 +17,9 @@ claim, so the later of two writes always lists the earlier one. A claim is live 
 (every ``BEAT_S``) and, for an owner on this host, while its process runs; a claim whose owner died (same host) or
 whose beat is older than ``STALE_S`` (another host: clocks are assumed within ``STALE_S`` of each other) is stale,
 deleted by whoever sees it; so is a claim that does not parse, or whose beat is not a finite time within ``STALE_S``
-of now (claims are written whole, renamed into place or in one PUT, so a torn one is never one being written). Written here because pyarrow.fs has no lock and a lock library (filelock, portalocker)
-covers local files only, not the object stores the cache runs on.
+of now (claims are written whole, renamed into place or in one PUT, so a torn one is never one being written).
+Written here because pyarrow.fs has no lock and a lock library (filelock, portalocker) covers local files only, not
+the object stores the cache runs on.
 """
 
 from __future__ import annotations

@@ -27,6 +27,9 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
+
+from annotated_types import Ge, Gt
 
 log = logging.getLogger(__name__)
 
@@ -39,15 +42,15 @@ _AUTH_ENV = ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN_PATH", "RAY_AUTH_TOKEN")
 class SimConfig:
     """Shape of a ``cluster=sim`` cluster (``ClusterConfig.sim``)."""
 
-    nodes: int = 2
+    nodes: Annotated[int, Ge(1)] = 2
     """Worker nodes (the head node comes on top and holds no CPUs or GPUs, as a KubeRay head)."""
-    node_cpus: int = 2
+    node_cpus: Annotated[int, Ge(1)] = 2
     """Logical CPUs each worker node advertises (Ray resources: they may exceed this machine's cores)."""
-    node_gpus: int = 2
+    node_gpus: Annotated[int, Ge(0)] = 2
     """GPUs each worker node advertises; without CUDA here they are Ray resources only."""
-    object_store_mb: int = 200
-    """Object store of each node, MiB."""
-    health_check_s: float = 1.0
+    object_store_mb: Annotated[int, Ge(75)] = 200
+    """Object store of each node, MiB (Ray's minimum is 75)."""
+    health_check_s: Annotated[float, Gt(0)] = 1.0
     """How often the head checks each node; a node that misses 3 checks in a row is declared dead."""
 
 

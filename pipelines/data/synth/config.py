@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
-from typing import Any
+from typing import Annotated, Any
 
-from pipelines.data.config import DatasetConfig
+from annotated_types import Ge, Gt, Interval
+
+from pipelines.data.config import SEED, DatasetConfig
 from pipelines.data.layout import WEATHERS, DataError
 
 SCENARIOS = ("curve", "stop", "lane_change", "start", "follow", "cruise")
@@ -32,52 +34,52 @@ class SynthConfig(DatasetConfig):
     """Checks the keys and names the scenes without generating anything (``gdwm run --dry-run``)."""
     tables: list[str] = field(default_factory=lambda: list(SYNTH_TABLES))
     """Everything: cameras, images, depth, LiDAR, poses, boxes, QA and planned routes."""
-    num_scenes: int = 4
+    num_scenes: Annotated[int, Ge(1)] = 4
     """Scenes to generate (``scene-0000`` ...)."""
-    num_frames: int = 10
+    num_frames: Annotated[int, Ge(1)] = 10
     """Frames per scene; trajectory QA needs >= 10 (4 history + 6 future) and is skipped below that."""
-    frame_rate_hz: float = 2.0
+    frame_rate_hz: Annotated[float, Gt(0)] = 2.0
     """Frame rate (nuScenes keyframes are 2 Hz)."""
-    width: int = 160
+    width: Annotated[int, Ge(1)] = 160
     """Image width in pixels (intrinsics are nuScenes' 1600x900 ones scaled to it)."""
-    height: int = 90
+    height: Annotated[int, Ge(1)] = 90
     """Image height in pixels."""
-    seed: int = 0
+    seed: Annotated[int, SEED] = 0
     """Master seed; scene ``i`` draws from ``default_rng([seed, i])``, so a seed fixes every byte."""
     weathers: list[str] = field(default_factory=lambda: list(WEATHERS))
     """Weather variants rendered per frame; must include ``clear`` (the ``images/`` folder)."""
-    val_fraction: float = 0.25
+    val_fraction: Annotated[float, Interval(ge=0, le=1)] = 0.25
     """Fraction of scenes (the last ones) whose QA is split ``val``; at least one when num_scenes >= 2."""
     scenarios: list[str] = field(default_factory=lambda: list(SCENARIOS))
     """Ego behaviours to draw from; scenes cycle through a seeded permutation of them."""
-    num_vehicles: int = 10
+    num_vehicles: Annotated[int, Ge(0)] = 10
     """Other vehicles per scene (cars, trucks, buses; fewer when placement finds no free spot)."""
-    parked_fraction: float = 0.4
+    parked_fraction: Annotated[float, Interval(ge=0, le=1)] = 0.4
     """Fraction of the other vehicles parked at the kerb."""
-    num_pedestrians: int = 6
+    num_pedestrians: Annotated[int, Ge(0)] = 6
     """Pedestrians per scene on the sidewalks (plus crossing ones in the ``stop`` scenario)."""
-    max_depth_m: float = 150.0
+    max_depth_m: Annotated[float, Gt(0)] = 150.0
     """Rays travel at most this far; farther surfaces count as sky (depth 0)."""
-    box_range_m: float = 60.0
+    box_range_m: Annotated[float, Gt(0)] = 60.0
     """Vehicles and pedestrians within this ego-xy distance get a 3D box."""
-    min_box_pixels: int = 12
+    min_box_pixels: Annotated[int, Ge(0)] = 12
     """Visible pixels an object needs in a camera to get a 2D box there."""
-    lidar_beams: int = 32
+    lidar_beams: Annotated[int, Ge(1)] = 32
     """LiDAR beams (HDL-32E-like elevations from -30.67 to +10.67 degrees)."""
-    lidar_azimuth_steps: int = 360
+    lidar_azimuth_steps: Annotated[int, Ge(1)] = 360
     """LiDAR azimuth samples per sweep."""
-    lidar_range_m: float = 70.0
+    lidar_range_m: Annotated[float, Gt(0)] = 70.0
     """LiDAR maximum range; farther returns are dropped."""
-    fog_visibility_m: float = 40.0
+    fog_visibility_m: Annotated[float, Gt(0)] = 40.0
     """Fog: distance at which the scene keeps exp(-1) of its contrast."""
-    qa_per_task: int = 4
+    qa_per_task: Annotated[int, Ge(0)] = 4
     """At most this many QA of each of rdp, vg2d and vg3d per frame."""
-    min_referent_pixels: int = 8
+    min_referent_pixels: Annotated[int, Ge(0)] = 8
     """Grounding QA (vg2d, vg3d) ask only about objects whose 2D box is at least this wide and high in the stored
     image (one patch of the tiny vision tower at the default 160x90)."""
-    plan_horizon_s: float = 2.0
+    plan_horizon_s: Annotated[float, Gt(0)] = 2.0
     """Planning QA look this far ahead; frames without that much future get none."""
-    num_workers: int = 0
+    num_workers: Annotated[int, Ge(0)] = 0
     """Processes rendering scenes in parallel: 0 = one per CPU (at most one per scene), 1 = in-process."""
 
 

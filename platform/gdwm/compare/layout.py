@@ -12,6 +12,9 @@ import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import Annotated
+
+from annotated_types import Ge, Interval
 
 
 class Direction(StrEnum):
@@ -70,7 +73,7 @@ class LayoutConfig:
     """Headers of discovered columns by leaf name (e.g. ``depth_absrel: AbsRel``)."""
     order: list[str] = field(default_factory=list)
     """Order of discovered leaves inside a group, as fnmatch patterns (e.g. ``fd_*``); the rest follow, sorted."""
-    precision: int = 2
+    precision: Annotated[int, Interval(ge=0, le=15)] = 2
     """Decimals shown; a column whose values all print the same gets no marks."""
     encoders: list[str] = field(default_factory=list)
     """Trial params naming the encoders a row used (e.g. ``stage.distill.encoder``): the notes print them per row."""
@@ -94,13 +97,13 @@ class CompareArgs:
     """Output folder; null = ``<workdir>/reports/<sweep name | runs | filter | all>``."""
     formats: list[Format] = field(default_factory=lambda: list(Format))
     """What to produce: terminal, markdown, latex, csv, html."""
-    alpha: float = 0.05
+    alpha: Annotated[float, Interval(gt=0, lt=1)] = 0.05
     """Significance level of the tests behind bold/underline (paired bootstrap, else Welch's t-test over seeds)."""
-    confidence: float = 0.95
+    confidence: Annotated[float, Interval(gt=0, lt=1)] = 0.95
     """Coverage of the cells' intervals (bootstrap over held-out samples, Student's t over seeds)."""
-    resamples: int = 1000
+    resamples: Annotated[int, Ge(2)] = 1000
     """Bootstrap resamples; each one rescores every row's per-sample predictions once."""
-    stats_seed: int = 0
+    stats_seed: Annotated[int, Interval(ge=0, le=2**32 - 1)] = 0
     """Seed of the bootstrap's resampling: the same runs give the same intervals and marks."""
     bootstrap_method: BootstrapMethod = BootstrapMethod.BCa
     """``BCa`` (its jackknife rescores every row once per held-out sample), ``percentile`` or ``basic``."""

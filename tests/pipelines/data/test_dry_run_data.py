@@ -41,7 +41,7 @@ def test_num_scenes_below_one_exits_2_naming_the_key(tmp_path, flag):
     work = tmp_path / "w"
     r = _gdwm("run", *([flag] if flag else []), f"workdir={work}", "data.num_scenes=0")
     assert r.returncode == 2
-    assert "data=synthetic_mini: data.num_scenes must be >= 1, got 0" in r.stderr
+    assert "invalid value for 'data.num_scenes': 0 (must be >= 1)" in r.stderr  # the schema's range (gdwm.knobs)
     assert "Traceback" not in r.stderr and not work.exists()
 
 
