@@ -27,6 +27,7 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import InterpolationResolutionError, MissingMandatoryValue, OmegaConfBaseException
 
 from gdwm.compare.layout import Direction
+from gdwm.fromenv import env_keys
 from gdwm.knobs import SEED, Ge, Gt, Interval, Len, check_ranges
 from gdwm.simcluster import SimConfig
 
@@ -232,6 +233,9 @@ class GdwmConfig:
     """Stage cache."""
     run: RunSettings = field(default_factory=RunSettings)
     """Execution policy."""
+    from_env: dict[str, str] = field(default_factory=dict)
+    """Set when the config is composed (not by hand): every key whose value comes from the environment
+    (``${oc.env:NAME}``), with the text gdwm records instead of its value (``<env:NAME>``; ``gdwm.fromenv``)."""
 
 
 @dataclass
@@ -409,8 +413,11 @@ def load_config(overrides: list[str] | tuple[str, ...] = (), config_name: str = 
     try:
         with initialize_config_dir(config_dir=str(conf_dir()), version_base="1.3"):
             cfg = compose(config_name=config_name, overrides=list(overrides))
+        secret = env_keys(OmegaConf.to_container(cfg, resolve=False)) if "from_env" in cfg else {}
         _check_resolvable(cfg)
         OmegaConf.resolve(cfg)
+        if "from_env" in cfg:  # values from the environment are recorded as their interpolation (gdwm.fromenv)
+            cfg.from_env = {k: v for k, v in secret.items() if not k.startswith("from_env")}
         if bad := check_ranges(cfg):  # every numeric knob's range, from its schema (gdwm.knobs)
             raise ConfigError(f"{bad}.")
     except (HydraException, OmegaConfBaseException) as e:

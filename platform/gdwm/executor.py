@@ -27,6 +27,7 @@ import ray
 
 from gdwm.cache import Cache, Manifest, cache_key
 from gdwm.determinism import stage_start
+from gdwm.fromenv import masked, restore
 from gdwm.keylock import KeyLock
 from gdwm.stage import StageContext, StageDef, UpstreamOutput
 from gdwm.tracking import Sink, Tracker, TrackingClient
@@ -85,6 +86,9 @@ class RunEnv:
     """Stage -> ``cache.reuse`` mode (default ``same_code``)."""
     verify: bool = True
     """``cache.verify``: re-hash an entry's files on every lookup (else trust a complete manifest and the sizes)."""
+    env_values: Mapping[str, Any] = field(default_factory=dict)
+    """Config key -> the value it took from the environment: what a stage reads where its subset records
+    ``<env:NAME>`` (``gdwm.fromenv``)."""
 
     @property
     def tracking(self) -> TrackingClient:
@@ -125,7 +129,8 @@ def stage_config(sd: StageDef, cfg: Any) -> dict[str, Any]:
     out = {k: OmegaConf.to_container(OmegaConf.select(cfg, k), resolve=True) for k in sd.config}
     if sd.seeded:
         out[SEED_KEY] = int(cfg.seed)
-    return out
+    # values from the environment (secrets) enter key, manifest and params as their interpolation (gdwm.fromenv)
+    return masked(out, cfg.get("from_env") or {})
 
 
 def code_digest(env: RunEnv, stage: str) -> str | None:
@@ -267,7 +272,7 @@ def _context(sd: StageDef, key: str, subset, env: RunEnv, results, out_dir: Path
     return StageContext(
         name=sd.name,
         key=key,
-        config=dict(subset),
+        config=restore(subset, env.env_values),
         out_dir=out_dir,
         upstream=upstream_views(results),
         data_root=Path(env.data_root),

@@ -39,6 +39,7 @@ from gdwm.executor import (
     upstream_keys,
 )
 from gdwm.fingerprint import stage_fingerprint
+from gdwm.fromenv import env_values
 from gdwm.zoo.refs import ZooError
 from gdwm.zoo.registry import pin_references
 
@@ -410,6 +411,7 @@ def env_settings(cfg: DictConfig, meta: dict) -> dict:
         verify=cfg.cache.verify,
         train_settings={"checkpoint_every": cfg.run.checkpoint_every, "max_failures": cfg.run.max_failures},
         tracking_uri=cfg.tracking.uri,
+        env_values=env_values(cfg),
     )
 
 

@@ -54,6 +54,7 @@ from gdwm.executor import (
     task_options,
     verified,
 )
+from gdwm.fromenv import recorded
 from gdwm.keylock import KeyLock
 from gdwm.plan import (
     PlanError,
@@ -273,7 +274,7 @@ class Layout:
         if run_id is None:
             tags |= {"gdwm.pipeline": self.pipeline}
             run_id = tracking.create_run(f"run-{self.pipeline}-{tags['gdwm.run_key'][:8]}", tags, None)
-            tracking.log_params(run_id, OmegaConf.to_container(cfg, resolve=True))
+            tracking.log_params(run_id, recorded(cfg))
         return run_id
 
     def _row_tags(self, row: Row) -> dict[str, str]:
@@ -288,7 +289,7 @@ class Layout:
             tracking.set_tags(run_id, tags)  # an edited row keeps its run; its index may move
             return run_id
         run_id = tracking.create_run(f"{self.sweep.name}/{row.label}", tags, parent)
-        tracking.log_params(run_id, OmegaConf.to_container(cfg, resolve=True))
+        tracking.log_params(run_id, recorded(cfg))
         return run_id
 
     def _trial_run(self, tracking: TrackingClient, row: Row, t: Trial) -> str:
@@ -300,7 +301,7 @@ class Layout:
             return run_id
         name = f"{self.sweep.name}/{t.name}" if self.sweep else f"seed-{t.seed}"
         run_id = tracking.create_run(name, tags, row.run_id)
-        tracking.log_params(run_id, OmegaConf.to_container(t.cfg, resolve=True))
+        tracking.log_params(run_id, recorded(t.cfg))
         return run_id
 
 

@@ -136,6 +136,8 @@ def seed_noise(seed: int) -> float:
 
 @stage("tokenizer", "1", config=["stage.toy_tokenizer"], upstream=["distill"], resources="train", seeded=True)
 def tokenizer(ctx: StageContext) -> None:
+    if "token" in ctx.cfg("stage.toy_tokenizer"):  # a secret from the environment reaches the stage as it is
+        (_test_dir() / "token-seen").write_text(ctx.cfg("stage.toy_tokenizer")["token"])
     n = sum(np.load(p / "features.npy").size for p in ctx.upstream["distill"].scenes.values())
     _train_stage(ctx, ctx.cfg("stage.toy_tokenizer")["steps"], float(n % 5))
 

@@ -4,6 +4,7 @@ the secret environment variables are masked wherever gdwm prints or logs (issue 
 from __future__ import annotations
 
 import io
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -125,3 +126,25 @@ def test_run_logs_no_credentials_to_mlflow(tmp_path):
     assert parent.data.params["cache.uri"] == f"file://{cache_dir}?token={MASK}"
     for x in runs:
         assert not [k for k, v in {**x.data.params, **x.data.tags}.items() if secret in v], x.info.run_name
+
+
+def test_a_secret_from_the_environment_reaches_the_stage_and_nothing_gdwm_writes(tmp_path):
+    """``${oc.env:HF_TOKEN}`` in a stage's config (a name redact() does not know): the stage reads the value, while
+    no manifest, param, tag, artifact or plan holds it, and the cache key stays the same when the secret rotates."""
+    toy = Toy(tmp_path)
+    old, new = "hf_OLDsecretOLDsecretOLD", "hf_NEWsecretNEWsecretNEW"
+    token = "+stage.toy_tokenizer.token=${oc.env:HF_TOKEN}"
+    r = toy.run(token, "targets=[tokenizer]", "run.live=false", HF_TOKEN=old)
+    assert r.returncode == 0, f"STDOUT\n{r.stdout[-3000:]}\nSTDERR\n{r.stderr[-5000:]}"
+    assert (tmp_path / "token-seen").read_text() == old
+    leaked = [p.relative_to(toy.work).as_posix() for p in toy.work.rglob("*") if p.is_file() and old.encode() in
+              p.read_bytes()]  # fmt: skip
+    assert leaked == [] and old not in r.stdout + r.stderr
+    (manifest,) = [p for p in (toy.work / "cache" / "tokenizer").rglob(MANIFEST)]
+    assert json.loads(manifest.read_text())["config"]["stage.toy_tokenizer"]["token"] == "<env:HF_TOKEN>"
+    # the secret rotates: the plan re-runs nothing and prints neither value
+    r = subprocess.run([*toy.args(token, "targets=[tokenizer]", "--dry-run")], env=toy.env(HF_TOKEN=new),
+                       capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert old not in r.stdout + r.stderr and new not in r.stdout + r.stderr
+    assert "7 cached, 0 to run" in r.stdout and "why stages re-run" not in r.stdout
