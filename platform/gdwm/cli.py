@@ -22,7 +22,15 @@ from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
-from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config, sqlite_path, ui_url
+from gdwm.config import (
+    MAIN_GROUPS,
+    ConfigError,
+    drop_mlflow_litter,
+    group_options,
+    load_config,
+    sqlite_path,
+    ui_url,
+)
 from gdwm.errors import CommandError, one_line
 from gdwm.redact import redact, redact_config
 from gdwm.term import console, err_console
@@ -476,6 +484,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        drop_mlflow_litter(str(cfg.tracking.uri))
 
 
 if __name__ == "__main__":

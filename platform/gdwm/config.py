@@ -9,9 +9,11 @@ type or a missing mandatory value is caught at compose time.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import re
+import urllib.parse
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -97,9 +99,10 @@ class TrackingConfig:
 
     name: str = "sqlite"
     """Tracking profile name."""
-    uri: str = "sqlite:///${abspath:${workdir}}/mlflow.db"
-    """MLflow tracking URI (sqlite file under the workdir by default)."""
-    artifact_location: str | None = "${abspath:${workdir}}/mlartifacts"
+    uri: str = "${sqlite_uri:${workdir}/mlflow.db}"
+    """MLflow tracking URI (sqlite file under the workdir by default; ``sqlite_uri`` quotes the path, so a workdir
+    named ``w #1?x=1`` is a path, not a URI's query)."""
+    artifact_location: str | None = "${file_uri:${workdir}/mlartifacts}"
     """Artifact root for new experiments; null lets the server decide."""
     experiment: Annotated[str, Len(1, 256)] = "gdwm"
     """MLflow experiment name (a store on PostgreSQL holds at most 256 characters)."""
@@ -367,8 +370,9 @@ def _register_platform(cs: ConfigStore) -> None:
 
 @cache
 def _register_all() -> tuple[str, ...]:
-    if not OmegaConf.has_resolver("abspath"):
-        OmegaConf.register_new_resolver("abspath", lambda p: str(Path(p).expanduser().resolve()))
+    for name, fn in PATH_RESOLVERS.items():
+        if not OmegaConf.has_resolver(name):
+            OmegaConf.register_new_resolver(name, fn)
     cs = ConfigStore.instance()
     _register_platform(cs)
     loaded = []
@@ -394,9 +398,38 @@ def conf_dir() -> Path:
     )
 
 
+def _abspath(path: str) -> str:
+    return str(Path(path).expanduser().resolve())
+
+
+PATH_RESOLVERS = {
+    "abspath": _abspath,
+    "sqlite_uri": lambda p: "sqlite:///" + urllib.parse.quote(_abspath(p)),
+    "file_uri": lambda p: Path(_abspath(p)).as_uri(),
+}
+"""Paths made absolute, and into URIs with their characters quoted: a workdir is a path, whatever it is named (a
+``?`` or ``#`` in it would otherwise start a URI's query or fragment)."""
+
+
+def drop_mlflow_litter(uri: str) -> None:
+    """Remove the empty directory MLflow makes from a quoted sqlite URI's raw text (it creates the parent of
+    ``uri.removeprefix("sqlite:///")`` before SQLAlchemy unquotes it: ``w%20%231%3F...`` beside a workdir ``w #1?...``)
+    once a command is done with the store."""
+    db = sqlite_path(uri)
+    if db is None:
+        return
+    raw = Path(uri.removeprefix("sqlite:///")).parent
+    if raw != Path(db).parent:
+        with contextlib.suppress(OSError):
+            raw.rmdir()  # only ever an empty directory
+
+
 def sqlite_path(uri: str) -> str | None:
-    """The database file of a ``sqlite:///`` tracking URI; None for any other store."""
-    return uri.removeprefix("sqlite:///") if uri.startswith("sqlite:///") else None
+    """The database file of a ``sqlite:///`` tracking URI, as SQLAlchemy reads it (up to a ``?``, unquoted); None for
+    any other store."""
+    if not uri.startswith("sqlite:///"):
+        return None
+    return urllib.parse.unquote(uri.removeprefix("sqlite:///").split("?", 1)[0])
 
 
 def group_options(group: str) -> list[str]:

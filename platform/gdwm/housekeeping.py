@@ -36,6 +36,7 @@ from omegaconf import DictConfig
 from rich.table import Table
 
 from gdwm.cache import CACHE_KEYS, MANIFEST, USED_DIR, Cache, Manifest, cache_key, canonical_json
+from gdwm.config import sqlite_path
 from gdwm.owned import CACHE_MARKER, NotOurs, own_cache
 from gdwm.term import console, err_console
 
@@ -313,7 +314,7 @@ class _Resolver:
 
 def _client(tracking_uri: str):
     """An MlflowClient, or None for a sqlite store that does not exist yet (nothing references anything)."""
-    if tracking_uri.startswith("sqlite:///") and not Path(tracking_uri.removeprefix("sqlite:///")).exists():
+    if (db := sqlite_path(tracking_uri)) is not None and not Path(db).exists():
         return None
     from mlflow import MlflowClient
 

@@ -136,3 +136,30 @@ def test_sweep_and_benchmark_defaults_name_no_pipeline():
 
     assert SweepConfig(name="s").layout is None  # gdwm compare's default layout
     assert BenchmarkConfig(name="b").targets == []  # the whole pipeline
+
+
+def test_a_workdir_is_a_path_never_a_uri(tmp_path, monkeypatch):
+    """A workdir named like a URI's query and fragment (`w #1?x=1%20`): the store, its artifacts and the cache land
+    inside it, nowhere else."""
+    from gdwm.cache import Cache, cache_key
+    from gdwm.config import drop_mlflow_litter, sqlite_path
+    from gdwm.tracking import TrackingBackend
+
+    monkeypatch.chdir(tmp_path)
+    work = tmp_path / "w #1?x=1%20"
+    cfg = load_config(["workdir='w #1?x=1%20'"])  # quoted, as a shell user writes it for Hydra
+    assert sqlite_path(cfg.tracking.uri) == f"{work}/mlflow.db"
+    backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
+    run = backend.create_run("r", {})
+    backend.log_text(run, "hello", "note.txt")
+    backend.end_run(run)
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "f").write_text("x")
+    key = cache_key("s", "1", {}, {}, "d")
+    Cache(cfg.cache.uri).publish("s", key, src, config={}, upstream={}, data_fingerprint="d", version="1")
+    drop_mlflow_litter(cfg.tracking.uri)  # what every gdwm command does on its way out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["src", "w #1?x=1%20"]
+    inside = {p.relative_to(work).parts[0] for p in work.rglob("*")}
+    assert {"mlflow.db", "mlflow.db.lock", "mlartifacts", "cache"} <= inside
+    assert [p.read_text() for p in (work / "mlartifacts").rglob("note.txt")] == ["hello"]
