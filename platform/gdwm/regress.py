@@ -24,12 +24,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 from pathlib import Path
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
 from gdwm.compare.layout import Direction
 from gdwm.config import BenchmarkConfig, CheckTest, ConfigError, MetricCheck, load_config
+from gdwm.names import check_name
 from gdwm.term import console, err_console
 
 KIND = "regression"
@@ -143,9 +145,14 @@ def load_benchmark(cfg: DictConfig) -> BenchmarkConfig:
     if cfg.get("benchmark") is None:
         raise RegressError("no benchmark selected: pass benchmark=NAME (conf/benchmark/)")
     try:
-        return OmegaConf.to_object(cfg.benchmark)
+        bench = OmegaConf.to_object(cfg.benchmark)
     except ValueError as e:  # MetricCheck's own validation (the tolerance's form)
         raise RegressError(f"benchmark.metrics: {e}") from e
+    try:  # its runs, reports and dashboards are filed under it
+        check_name(bench.name, "benchmark.name")
+    except ValueError as e:
+        raise RegressError(str(e)) from None
+    return bench
 
 
 def regress(cfg: DictConfig, argv: list[str]) -> int:
@@ -156,7 +163,11 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
     from gdwm.tracking import TrackingBackend
 
     bench = load_benchmark(cfg)
-    user = [a for a in argv if not a.startswith("--") and a.split("=", 1)[0] != "benchmark"]
+    if not bench.metrics:
+        raise RegressError(f"benchmark '{bench.name}': no metrics to watch (benchmark.metrics is empty): a gate that "
+                           "checks nothing would always pass")  # fmt: skip
+    # the suite's own keys (benchmark.*) are not the evaluated run's
+    user = [a for a in argv if not a.startswith("--") and a.split("=", 1)[0].lstrip("+~").split(".")[0] != "benchmark"]
     overrides = [f"targets=[{','.join(bench.targets)}]", *bench.overrides, *user]
     try:
         overrides += honest_overrides(load_config(overrides), "--fresh" in argv)
@@ -170,6 +181,7 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
             f"benchmark '{bench.name}': {sigma[0]} has tolerance {{sigma: K}}, which needs >= 2 seeds "
             f"(benchmark.seeds has {n_seeds})"
         )
+    backend, base_run = _baseline_before_launch(cfg, bench, "--set-baseline" in argv)
     try:
         summary = run_pipeline(run_cfg, overrides, seeds=bench.seeds, seeds_key="benchmark.seeds", live=False)
     except PlanError as e:
@@ -181,8 +193,8 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
     now_samples = {t.trial.seed: evaluation_samples(t.trial.pipe, t.results) for t in summary.trials}
     stages = provenance(summary.trials)
 
-    backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
-    base_run = _baseline(backend, bench)
+    if backend is None:  # the first run on a new store, recording the baseline
+        backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
     paired = None
     if base_run and any(c.test is CheckTest.bootstrap for c in bench.metrics):
         paired = _paired(backend, bench, base_run["run_id"], now_samples)
@@ -347,6 +359,28 @@ def _paired(backend, bench: BenchmarkConfig, base_id: str, now: dict[int, dict])
             if b is not None:
                 out |= {m: (-hi, -lo) for (_, _, m), (lo, hi) in b.diffs.items()}  # diffs are baseline - now
     return out.get
+
+
+def _baseline_before_launch(cfg: DictConfig, bench: BenchmarkConfig, setting: bool) -> tuple[Any, dict | None]:
+    """``(backend, baseline run)`` read before anything runs: a baseline id that does not exist, or no baseline at all
+    unless this run records one (``--set-baseline``), is a ``RegressError`` (exit 2). A sqlite store that does not
+    exist yet is not created (``backend`` None)."""
+    from gdwm.config import sqlite_path
+    from gdwm.tracking import TrackingBackend
+
+    db = sqlite_path(cfg.tracking.uri)
+    backend = base_run = None
+    if db is None or Path(db).is_file():
+        backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
+        base_run = _baseline(backend, bench)
+    elif bench.baseline:
+        raise RegressError(f"benchmark.baseline: no run '{bench.baseline}' in {cfg.tracking.uri} (no store there)")
+    if base_run is None and not setting:
+        raise RegressError(
+            f"benchmark '{bench.name}': no baseline in {cfg.tracking.uri} (no run of it tagged {BASELINE_TAG}=true, "
+            f"no benchmark.baseline): record one first with gdwm regress benchmark={bench.name} --set-baseline"
+        )
+    return backend, base_run
 
 
 def _baseline(backend, bench: BenchmarkConfig) -> dict | None:

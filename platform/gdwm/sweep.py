@@ -16,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
 from gdwm.config import SweepConfig, load_config, sqlite_path
+from gdwm.names import check_name
 from gdwm.plan import (
     PlanError,
     Trial,
@@ -50,6 +51,12 @@ def load_sweep(cfg: DictConfig) -> SweepConfig:
 def plan_sweep(cfg: DictConfig, argv: list[str], dry_run: bool = False) -> tuple[SweepConfig, list, list[Trial]]:
     """The sweep's rows and trials, composed and planned; a bad row, key or seed raises ``SweepError``."""
     sweep = load_sweep(cfg)
+    try:  # they become paths (the report's folder) and run names: a shared sweep file must not point elsewhere
+        check_name(sweep.name, "sweep.name")
+        for i, row in enumerate(sweep.rows):
+            check_name(row.label, f"sweep.rows[{i}].label")
+    except ValueError as e:
+        raise SweepError(str(e)) from None
     seeds = resolve_seeds(cfg, sweep.seeds, "sweep.seeds")
     given = cfg.get("seeds") is not None or sweep.seeds is not None
     where = f"sweep '{sweep.name}'"

@@ -6,9 +6,11 @@ from __future__ import annotations
 import statistics
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
+from gdwm.cli import main
 from gdwm.regress import CheckTest, Direction, MetricCheck, check, failed
 from tests.gdwm.test_run import Toy, _ok
 
@@ -195,3 +197,25 @@ def test_perf_metrics_run_registered_benchmarks_and_name_a_missing_one(monkeypat
     with pytest.raises(RegressError, match=r"^benchmark.perf: performance benchmark 'broken' "
                        r"\(tests.gdwm.no_such_module:run\) does not import: No module named"):  # fmt: skip
         perf_metrics(["broken"])
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["benchmark.metrics=[]"], "benchmark 'toy_nightly': no metrics to watch (benchmark.metrics is empty): a gate "
+                                   "that checks nothing would always pass"),
+        (["benchmark.baseline=0123456789abcdef0123456789abcdef"],
+         "benchmark.baseline: no run '0123456789abcdef0123456789abcdef' in "),
+        ([], "benchmark 'toy_nightly': no baseline in "),
+        (["benchmark.name=../nightly"], "benchmark.name='../nightly' starts with '.'"),
+    ],
+)  # fmt: skip
+def test_a_gate_that_would_check_nothing_exits_2_before_launch(tmp_path, monkeypatch, capsys, args, message):
+    """No metrics, a baseline id that does not exist or no baseline at all: refused before Ray starts or any stage
+    recomputes (a nightly gate that checks nothing must not report success)."""
+    toy = Toy(tmp_path)
+    monkeypatch.setenv("GDWM_CONF_PATH", str(Path(__file__).parents[1] / "conf"))
+    rc = main(["regress", "benchmark=toy_nightly", f"workdir={toy.work}", f"data.root={toy.data}", *args])
+    err = " ".join(capsys.readouterr().err.split())
+    assert rc == 2 and err.startswith(f"gdwm regress: {message}"), err
+    assert not (tmp_path / "executions.log").exists() and not (toy.work / "cache").exists()

@@ -9,9 +9,11 @@ import subprocess
 import sys
 import time
 from collections import Counter
+from pathlib import Path
 
 import pytest
 
+from gdwm.cli import main
 from tests.gdwm.test_run import Toy, _ok
 
 
@@ -194,7 +196,7 @@ def test_seeds_share_seed_free_stages_and_aggregate_per_row(tmp_path):
     ("args", "message"),
     [
         (["sweep=toy_seeds", "seeds=[]"], "seeds: no seeds given"),
-        (["sweep=toy_seeds", "seeds=[0,-1]"], "seeds: seeds must be integers >= 0, got [-1]"),
+        (["sweep=toy_seeds", "seeds=[0,-1]"], "invalid value for 'seeds[1]': -1 (must be >= 0 and <= 4294967295)"),
         (["sweep=toy_seeds", "seeds=[0,x]"], "seeds"),
         (["sweep=toy_seeds", "seeds=[1,1]"], "seeds: seed(s) [1] listed twice"),
         (["sweep=toy_grid", "seeds=[0,1]", "+sweep.grid.seed=[1,2]"], "grid key 'seed' sets a seed itself"),
@@ -218,3 +220,22 @@ def test_rows_resolving_to_the_same_stage_keys_exit_2_naming_both(tmp_path):
         "under two labels); make their overrides differ or drop one"
     ) in " ".join(r.stderr.split())
     assert not (toy.work / "mlflow.db").exists()
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("sweep.name=../../escaped", "sweep.name='../../escaped' starts with '.'"),
+        ("sweep.name=/tmp/anywhere", "sweep.name='/tmp/anywhere' holds '/'"),
+        ("sweep.rows.0.label=a/b", "sweep.rows[0].label='a/b' holds '/'"),
+        ("sweep.rows.1.label=..", "sweep.rows[1].label='..' starts with '.'"),
+    ],
+)
+def test_names_that_become_paths_are_plain_names_else_exit_2(tmp_path, monkeypatch, capsys, override, message):
+    """A sweep file shared by others carries its name and labels: `../../escaped` would put the reports outside the
+    workdir, an absolute name anywhere. Refused before anything is planned or written."""
+    monkeypatch.setenv("GDWM_CONF_PATH", str(Path(__file__).parents[1] / "conf"))
+    rc = main(["sweep", "sweep=toy_ablation", override, f"workdir={tmp_path / 'w'}", "--dry-run"])
+    err = " ".join(capsys.readouterr().err.split())
+    assert rc == 2 and message in err and "a name that becomes a path must be one plain path component" in err
+    assert not (tmp_path / "w").exists() and not (tmp_path.parent / "escaped").exists()
