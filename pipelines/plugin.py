@@ -27,6 +27,12 @@ def register(cs: ConfigStore) -> None:
     from pipelines.understanding.config import LoraStageConfig, TokenizerStageConfig, WorldConfig
 
     register_resolvers()
+    from gdwm.api import register_callables
+
+    for dataset in (SynthConfig, NuScenesConfig, ReleaseConfig):  # the functions gdwm may call for our datasets
+        register_callables("data.builder", dataset.builder)
+        register_callables("data.planner", dataset.planner)
+        register_callables("data.summarizer", dataset.summarizer)
     cs.store(group="schema/data", name="synthetic_mini", node=SynthConfig)
     cs.store(group="schema/data", name="nuscenes", node=NuScenesConfig)
     cs.store(group="schema/data", name="gaussiandwm_release", node=ReleaseConfig)

@@ -7,6 +7,8 @@ is private to it and may change without notice.
   ``build_data`` (a dataset-building command's ``run``), ``run_pipeline`` (a sub-pipeline up to some targets),
   ``TrackingBackend`` (MLflow, for a command's own runs), ``console`` / ``err_console`` (terminal output).
 - Reporting: ``mean_of_printed`` (the average of numbers as a table prints them).
+- Plugins: ``register_callables`` (the functions a config may name, e.g. a dataset's ``data.builder``; anything
+  else is refused, exit 2).
 - Config schemas: ``SEED``, a seed's range for ``typing.Annotated`` fields (``gdwm.knobs``: every numeric knob
   declares its range with ``annotated_types``).
 
@@ -21,6 +23,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # what checkers and IDEs see (`as` marks a re-export); EXPORTS names the same, tested
+    from gdwm.callables import register_callables as register_callables
     from gdwm.cli import Command as Command
     from gdwm.cli import build_data as build_data
     from gdwm.compare.rounding import mean_of_printed as mean_of_printed
@@ -51,6 +54,7 @@ EXPORTS = {
     "err_console": "gdwm.term",
     "mean_of_printed": "gdwm.compare.rounding",
     "SEED": "gdwm.knobs",
+    "register_callables": "gdwm.callables",
 }
 """Name -> the module that defines it (a literal: the fingerprint reads it without importing this module)."""
 

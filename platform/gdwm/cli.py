@@ -57,9 +57,10 @@ def build_data(cfg: DictConfig, _args: list[str]) -> int:
 
 
 def _data_info(cfg: DictConfig, _args: list[str]) -> int:
+    from gdwm.callables import resolve_callable
     from gdwm.datasets import verification_line
 
-    for part in get_method(cfg.data.summarizer)(Path(cfg.data.root)):  # the dataset's own lines and tables
+    for part in resolve_callable(cfg, "data.summarizer")(Path(cfg.data.root)):  # the dataset's own lines and tables
         console.print(part)
     console.print(verification_line(Path(cfg.data.root)), markup=False)
     return 0
@@ -468,6 +469,9 @@ def main(argv: list[str] | None = None) -> int:
     previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
     try:
         return int(spec.run(cfg, overrides) or 0)
+    except ConfigError as e:  # found once the command looked closer (a function the config names, say): exit 2
+        err_console.print(f"gdwm: config error: {e}", markup=False)
+        return 2
     except Exception as e:
         # One line naming the file, scene, key, stage or actor (gdwm.errors); GDWM_DEBUG=1 shows the traceback.
         if os.environ.get("GDWM_DEBUG"):

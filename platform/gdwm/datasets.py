@@ -22,9 +22,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 
+from gdwm.callables import check_callables, resolve_callable
 from gdwm.term import console, err_console
 
 
@@ -35,10 +35,11 @@ class DataMismatch(Exception):
 def build_dataset(cfg: DictConfig, source: str | None) -> None:
     """Build the dataset selected by ``data=`` (published atomically by its builder), then print its summary."""
     root = Path(cfg.data.root)
+    check_callables(cfg)  # every function the config names is registered, before the first one runs
     t0 = time.perf_counter()
-    get_method(cfg.data.builder)(cfg.data, root=root, source=source, overwrite=cfg.overwrite)
+    resolve_callable(cfg, "data.builder")(cfg.data, root=root, source=source, overwrite=cfg.overwrite)
     console.print(f"built {cfg.data.name} in {time.perf_counter() - t0:.1f} s")
-    for part in get_method(cfg.data.summarizer)(root):  # the dataset's own lines and tables
+    for part in resolve_callable(cfg, "data.summarizer")(root):  # the dataset's own lines and tables
         console.print(part)
 
 

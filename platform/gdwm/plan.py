@@ -356,10 +356,10 @@ def planned_scenes(cfg: DictConfig) -> list[str] | None:
     written); None when the dataset has no planner. A bad key is a ``PlanError`` naming it (exit 2)."""
     if not cfg.data.get("planner"):
         return None
-    from hydra.utils import get_method
+    from gdwm.callables import resolve_callable
 
     try:
-        return list(get_method(cfg.data.planner)(cfg.data))
+        return list(resolve_callable(cfg, "data.planner")(cfg.data))
     except ValueError as e:  # the builders' DataError: the message names data.<key>
         raise PlanError(f"data={cfg.data.name}: {e}") from e
 
@@ -368,7 +368,10 @@ def ensure_data(cfg: DictConfig, dry_run: bool = False) -> dict:
     """The dataset's meta, verified (``gdwm.datasets.check_dataset``); a dataset that needs no source (synthetic) is
     generated first if absent. A dry run generates nothing: it plans with the scenes the builder would write and
     ``PENDING_DATA`` as the fingerprint (so every stage is to run), and says so under ``pending``."""
+    from gdwm.callables import check_callables
+
     root = Path(cfg.data.root)
+    check_callables(cfg)  # data.builder, data.planner, data.summarizer: registered ones only, before any runs
     scenes = planned_scenes(cfg)  # checked before anything exists or is generated
     if not (root / "dataset.json").is_file():
         if cfg.source is None and not cfg.data.needs_source:
