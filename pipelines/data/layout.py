@@ -561,7 +561,9 @@ class DatasetWriter:
     """Builds a dataset in a temp dir beside ``root`` and publishes it atomically.
 
     Use as a context manager; on an exception the temp dir is removed and an existing
-    dataset at ``root`` is untouched. ``overwrite=False`` refuses to replace one.
+    dataset at ``root`` is untouched. ``overwrite=False`` refuses to replace one; ``overwrite=True`` replaces only a
+    dataset gdwm wrote (its ``dataset.json`` is the marker), never a user's folder; an empty folder is filled. The
+    published folder gets the umask's mode (the temp dir's 0700 would shut out other users of a shared root).
     """
 
     def __init__(
@@ -586,8 +588,10 @@ class DatasetWriter:
 
     # -- lifecycle
     def __enter__(self) -> DatasetWriter:
-        if self.root.exists() and not self.overwrite:
-            raise DataError(f"{self.root}: a dataset already exists (pass overwrite to replace it)")
+        if self.root.exists() and not (self.root.is_dir() and not any(self.root.iterdir())):  # an empty one is filled
+            if not self.overwrite:
+                raise DataError(f"{self.root}: a dataset already exists (pass overwrite to replace it)")
+            _check_ours(self.root)
         self.root.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.tmp-", dir=self.root.parent))
         return self
@@ -673,6 +677,7 @@ class DatasetWriter:
         }
         # dataset.json is written last: a reader trusts only a root that has it.
         (self.tmp / "dataset.json").write_text(json.dumps(meta, indent=2, sort_keys=True))
+        self.tmp.chmod(0o777 & ~_umask())  # mkdtemp's 0700 would lock out other users of a shared data.root
         old = None
         if self.root.exists():
             old = self.root.with_name(f".{self.root.name}.old-{uuid.uuid4().hex[:8]}")
@@ -680,6 +685,29 @@ class DatasetWriter:
         os.rename(self.tmp, self.root)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+
+
+def _umask() -> int:
+    """The process's umask (reading it means setting it: put straight back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _check_ours(root: Path) -> None:
+    """A ``DataError`` unless ``root`` holds a dataset gdwm wrote (its ``dataset.json``, with the layout version and
+    fingerprint gdwm records, is the marker): ``overwrite`` must never replace a user's own folder."""
+    try:
+        meta = json.loads((root / "dataset.json").read_text())
+        ours = isinstance(meta, dict) and {"layout_version", "fingerprint", "scenes"} <= set(meta)
+    except (OSError, ValueError):
+        ours = False
+    if not ours:
+        first = sorted(p.name for p in root.iterdir())[0] if root.is_dir() else root.name
+        raise DataError(
+            f"{root}: not a gdwm dataset (no dataset.json of gdwm's; {first} is not gdwm's): overwrite=true replaces "
+            "only a dataset gdwm built; choose another data.root"
+        )
 
 
 def _camera_order(cam: str) -> tuple[int, str]:

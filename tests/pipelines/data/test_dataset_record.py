@@ -6,14 +6,23 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import stat
 from pathlib import Path
 
 import numpy as np
+import pytest
 from omegaconf import OmegaConf
 
 from pipelines.data.gaussiandwm import ReleaseConfig
 from pipelines.data.gaussiandwm import build as import_release
-from pipelines.data.layout import DatasetWriter, content_params, fingerprint_of, fingerprint_tree, image_relpath
+from pipelines.data.layout import (
+    DataError,
+    DatasetWriter,
+    content_params,
+    fingerprint_of,
+    fingerprint_tree,
+    image_relpath,
+)
 from pipelines.data.nuscenes import NuScenesConfig
 from pipelines.data.nuscenes import build as convert_nuscenes
 from pipelines.data.synth.config import SynthConfig
@@ -96,3 +105,43 @@ def test_importers_record_their_options(tmp_path):
         "lidar": True,
     }
     assert isinstance(meta["params"]["cameras"], list) and meta["fingerprint"] == fingerprint_tree(tmp_path / "conv")[0]
+
+
+def _tiny(root: Path, overwrite: bool = False) -> None:
+    with DatasetWriter(root, name="tiny", source="test", overwrite=overwrite) as w:
+        w.add("frames", scene_id="s0", frame_idx=0, timestamp_us=0, token="t0")
+
+
+def test_overwrite_replaces_only_a_dataset_gdwm_wrote(tmp_path, capsys):
+    """overwrite=true on a user's folder (a thesis, a results folder) is refused, before anything is generated; an
+    earlier dataset is replaced, and an empty folder is filled."""
+    thesis = tmp_path / "thesis"
+    thesis.mkdir()
+    (thesis / "chapter1.tex").write_text("years of work")
+    with pytest.raises(DataError) as e:
+        _tiny(thesis, overwrite=True)
+    assert str(e.value) == (
+        f"{thesis}: not a gdwm dataset (no dataset.json of gdwm's; chapter1.tex is not gdwm's): overwrite=true "
+        "replaces only a dataset gdwm built; choose another data.root"
+    )
+    from gdwm.cli import main
+
+    rc = main(["data", "synth", f"data.root={thesis}", "overwrite=true", "data.num_scenes=1"])
+    assert rc == 1 and "not a gdwm dataset" in capsys.readouterr().err
+    assert [p.name for p in thesis.iterdir()] == ["chapter1.tex"] and os.listdir(tmp_path) == ["thesis"]
+    _tiny(tmp_path / "ds")
+    _tiny(tmp_path / "ds", overwrite=True)  # gdwm's own: replaced
+    (tmp_path / "empty").mkdir()
+    _tiny(tmp_path / "empty")
+    assert _meta(tmp_path / "ds")["name"] == _meta(tmp_path / "empty")["name"] == "tiny"
+
+
+@pytest.mark.parametrize("umask, mode", [(0o022, 0o755), (0o027, 0o750), (0o002, 0o775)])
+def test_a_dataset_folder_gets_the_umask_s_mode(tmp_path, umask, mode):
+    """Not the temp dir's 0700: another user, or a pod with another UID on a shared data.root, reads it."""
+    old = os.umask(umask)
+    try:
+        _tiny(tmp_path / "ds")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "ds").stat().st_mode) == mode
