@@ -3,6 +3,7 @@ from the trials, marks earned by Welch's t-test over seeds, the four text format
 
 import csv
 import io
+import os
 import re
 import subprocess
 import sys
@@ -12,6 +13,7 @@ import pytest
 from rich.console import Console
 from scipy import stats
 
+from gdwm.cli import main
 from gdwm.compare.command import settings
 from gdwm.compare.layout import ColumnConfig, CompareArgs, Direction, LayoutConfig, default_direction, resolve_columns
 from gdwm.compare.render import tex_escape, to_csv, to_latex, to_markdown, to_rich
@@ -386,8 +388,9 @@ def test_cli_compares_a_sweep_and_logs_the_report_to_it(store):
     r = _gdwm("compare", f"workdir={store.workdir}", "args.sweep=abl", "args.baseline=B")
     assert r.returncode == 0, r.stderr
     assert "NuInteract" in r.stdout and "failed at" in r.stdout  # 11 columns ± std wrap in 160 characters
-    names = sorted(p.name for p in out.iterdir())
+    names = sorted(p.name for p in out.iterdir() if p.name != ".gdwm-report")
     assert names == ["nuinteract.csv", "nuinteract.html", "nuinteract.md", "nuinteract.tex"]
+    assert (out / ".gdwm-report").is_file()  # the folder is gdwm's: the next report may replace its files
     html = (out / "nuinteract.html").read_text()
     assert "Deltas vs baseline B" in html and "No training history" not in html
     assert html.count("<img") == 4  # radar, bars, deltas, training curves
@@ -439,3 +442,28 @@ def test_cli_without_a_store_says_so(tmp_path):
     r = _gdwm("compare", f"workdir={tmp_path}")
     assert r.returncode == 1
     assert f"no MLflow store at {tmp_path.resolve()}/mlflow.db (tracking.uri)" in r.stderr.replace("\n", " ")
+
+
+def test_a_report_never_overwrites_a_folder_gdwm_did_not_create(store, tmp_path, capsys):
+    """args.out naming a user's folder (holding, say, their own nuinteract.csv) is refused; a folder of reports an
+    older gdwm wrote is recognised and marked."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "nuinteract.csv").write_text("my numbers")
+    (mine / "notes.txt").write_text("my notes")
+    args = ["compare", f"workdir={store.workdir}", f"args.runs=[{store.plain_run}]", "args.formats=[csv]"]
+    rc = main([*args, f"args.out={mine}"])
+    err = " ".join(capsys.readouterr().err.split())
+    assert rc == 1 and err == (
+        f"gdwm compare: CommandError: {mine}: not a gdwm report directory (notes.txt is not gdwm's, and there is no "
+        ".gdwm-report); choose an empty or new directory"
+    )
+    assert (mine / "nuinteract.csv").read_text() == "my numbers" and sorted(os.listdir(mine)) == [
+        "notes.txt",
+        "nuinteract.csv",
+    ]
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "nuinteract.md").write_text("an older gdwm's report")
+    assert main([*args, f"args.out={old}"]) == 0
+    assert sorted(os.listdir(old)) == [".gdwm-report", "nuinteract.csv", "nuinteract.md"]

@@ -15,6 +15,8 @@ from gdwm.compare.stats import Settings
 from gdwm.compare.table import build_table
 from gdwm.config import sqlite_path, ui_url
 from gdwm.errors import CommandError
+from gdwm.names import check_name
+from gdwm.owned import NotOurs, own_report_dir
 from gdwm.term import console, err_console
 from gdwm.tracking import TrackingBackend
 
@@ -75,10 +77,14 @@ def compare(cfg: DictConfig) -> int:
 
     if Format.terminal in args.formats:
         console.print(to_rich(table))
-    out = Path(args.out or Path(cfg.workdir) / "reports" / sel.name).resolve()
+    try:  # a sweep's name becomes the folder; gdwm writes only into a folder of its own (gdwm.owned)
+        out = Path(args.out or Path(cfg.workdir) / "reports" / check_name(sel.name, "args.sweep")).resolve()
+        if any(f in SUFFIX for f in args.formats):
+            own_report_dir(out)
+    except (ValueError, NotOurs) as e:
+        raise CommandError(str(e)) from None
     for fmt in (f for f in args.formats if f in SUFFIX):
         path = out / f"{layout.name}.{SUFFIX[fmt]}"
-        out.mkdir(parents=True, exist_ok=True)
         path.write_text(_render(fmt, table, base, backend, cfg, sel.selector), encoding="utf-8")
         console.print(f"wrote {path}")
         if sel.sweep_run_id:  # this process is the only writer of the store while it runs
