@@ -168,6 +168,9 @@ def _ui(cfg: DictConfig, _args: list[str]) -> int:
     """``mlflow server`` on the configured store in the foreground; Ctrl-C (or SIGTERM) stops it, exit 0."""
     import subprocess
 
+    from gdwm.ports import check_port_free
+
+    check_port_free(cfg.ui.host, int(cfg.ui.port))  # another server's URL must never be printed as ours
     cmd = [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", cfg.tracking.uri, "--workers", "1"]
     cmd += ["--host", cfg.ui.host, "--port", str(cfg.ui.port)]
     if cfg.tracking.artifact_location:  # experiments created in the UI keep their artifacts in the workdir too

@@ -1,6 +1,7 @@
 """``gdwm ui``: the MLflow UI on the configured store, on 127.0.0.1, until stopped (SIGTERM or Ctrl-C: exit 0)."""
 
 import json
+import os
 import signal
 import socket
 import subprocess
@@ -8,6 +9,7 @@ import sys
 import time
 import urllib.request
 
+import psutil
 import pytest
 
 from gdwm.tracking import TrackingBackend
@@ -64,3 +66,18 @@ def test_ui_serves_the_store_and_stops_cleanly(tmp_path):
     assert proc.returncode == 0, out
     assert f"MLflow UI for sqlite:///{tmp_path}/mlflow.db: http://127.0.0.1:{port}" in out
     assert _refused(port)  # the server and its workers are gone with it
+
+
+def test_another_server_on_the_port_exits_1_naming_it(tmp_path):
+    """Something else listens on ui.port: gdwm never prints that server's URL as its own, and says who holds it."""
+    with socket.socket() as other:
+        other.bind(("127.0.0.1", 0))
+        other.listen()
+        port = other.getsockname()[1]
+        r = subprocess.run([sys.executable, "-m", "gdwm", "ui", f"workdir={tmp_path}", f"ui.port={port}"],
+                           capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert r.returncode == 1 and r.stdout == ""
+    assert r.stderr.strip() == (
+        f"gdwm ui: CommandError: ui.port={port}: 127.0.0.1:{port} is already in use by another process (pid {os.getpid()}, "
+        f"{psutil.Process().name()}); stop it or choose another ui.port"
+    )
