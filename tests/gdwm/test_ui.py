@@ -78,6 +78,6 @@ def test_another_server_on_the_port_exits_1_naming_it(tmp_path):
                            capture_output=True, text=True, timeout=120)  # fmt: skip
     assert r.returncode == 1 and r.stdout == ""
     assert r.stderr.strip() == (
-        f"gdwm ui: CommandError: ui.port={port}: 127.0.0.1:{port} is already in use by another process (pid {os.getpid()}, "
-        f"{psutil.Process().name()}); stop it or choose another ui.port"
+        f"gdwm ui: CommandError: ui.port={port}: 127.0.0.1:{port} is already in use by another process (pid "
+        f"{os.getpid()}, {psutil.Process().name()}); stop it or choose another ui.port"
     )
