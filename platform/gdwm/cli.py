@@ -95,7 +95,8 @@ def _status(cfg: DictConfig, _args: list[str]) -> int:
         err_console.print(f"no MLflow store at {db}: nothing has run in workdir "
                           f"{cfg.workdir} (or tracking.uri points elsewhere)", markup=False)  # fmt: skip
         return 1
-    backend = TrackingBackend(uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
+    backend = TrackingBackend(uri, cfg.tracking.experiment, cfg.tracking.artifact_location,
+                              lock_timeout_s=cfg.tracking.lock_timeout_s)  # fmt: skip
     runs = backend.search_runs("", max_results=30, order_by=["attributes.start_time DESC"])
     t = Table(title=f"recent runs in {redact(cfg.tracking.uri)}", header_style="bold")
     for col in ("run id", "name", "kind", "stage", "status", "started", "cache key"):

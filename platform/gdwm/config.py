@@ -110,6 +110,9 @@ class TrackingConfig:
     """Route every write through one process (required for sqlite)."""
     system_metrics_interval_s: Annotated[float, Ge(0)] = 10.0
     """Sampling interval of MLflow system metrics on stage runs; 0 turns them off."""
+    lock_timeout_s: Annotated[float, Gt(0)] = 120.0
+    """A sqlite store's writers take turns through ``<db>.lock``: how long one waits for another (a hung or stopped
+    gdwm, named by its pid) before giving up with one line."""
 
 
 class ReuseMode(StrEnum):

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
+import os
 import socket
 import threading
 import time
 from pathlib import Path
 
+import psutil
 import pytest
 
 from gdwm import keylock
@@ -144,3 +146,31 @@ def test_drivers_initialising_one_fresh_sqlite_store_together_both_succeed(tmp_p
         p.join(30)
     assert results == ["ok"] * n
     assert len(TrackingBackend(uri, "gdwm").search_runs("tags.k = 'v'")) == n
+
+
+def test_a_held_store_lock_names_its_holder_and_is_given_up_after_the_timeout(tmp_path):
+    """A hung or stopped gdwm holds mlflow.db.lock: `gdwm status` says it waits and for whom, then gives up after
+    tracking.lock_timeout_s with one line naming the lock and the holder's pid (exit 1), instead of waiting forever."""
+    import subprocess
+    import sys
+
+    from filelock import FileLock
+
+    TrackingBackend(f"sqlite:///{tmp_path}/mlflow.db", "gdwm")
+    with FileLock(f"{tmp_path}/mlflow.db.lock"):  # this process stands in for the stuck driver
+        t0 = time.monotonic()
+        r = subprocess.run([sys.executable, "-m", "gdwm", "status", f"workdir={tmp_path}", "tracking.lock_timeout_s=3"],
+                           capture_output=True, text=True, timeout=120)  # fmt: skip
+        took = time.monotonic() - t0
+    lines = r.stderr.strip().splitlines()
+    holder = f"pid {os.getpid()} ({psutil.Process().name()})"  # read from /proc/locks
+    assert r.returncode == 1 and r.stdout == ""
+    assert (
+        lines[0]
+        == f"gdwm: waiting for the tracking store's lock {tmp_path}/mlflow.db.lock, held by {holder} (up to 3 s)"
+    )
+    assert lines[-1] == (
+        f"gdwm status: TrackingError: tracking store {tmp_path}/mlflow.db: its lock mlflow.db.lock is still held by "
+        f"{holder} after 3 s; stop that process if it hangs, or raise tracking.lock_timeout_s"
+    )
+    assert took < 60

@@ -12,7 +12,6 @@ from datetime import UTC, datetime
 from typing import Any, TypeVar
 
 import ray
-from filelock import FileLock
 from mlflow import MlflowClient
 from mlflow.entities import Metric, Param, RunStatus, RunTag, ViewType
 from mlflow.exceptions import MlflowException
@@ -34,6 +33,7 @@ from gdwm.tracking.params import (
     flatten_params,
     truncate,
 )
+from gdwm.tracking.storelock import DEFAULT_TIMEOUT_S, StoreLock
 from gdwm.zoo import registry as zoo
 
 log = logging.getLogger(__name__)
@@ -77,12 +77,14 @@ class TrackingBackend:
         artifact_location: str | None = None,
         default_tags: Mapping[str, str] | None = None,
         system_metrics_interval_s: float = DEFAULT_SYSTEM_METRICS_INTERVAL_S,
+        lock_timeout_s: float = DEFAULT_TIMEOUT_S,
     ):
         self.uri = uri
         self.experiment = experiment
         self.artifact_location = artifact_location
         self.default_tags = dict(default_tags or {})
         self.system_metrics_interval_s = system_metrics_interval_s
+        self.lock_timeout_s = lock_timeout_s
         self._connect()
 
     def _connect(self) -> None:
@@ -104,7 +106,7 @@ class TrackingBackend:
 
     # Shipped to workers in server mode: reconnect there instead of pickling a client and its threads.
     def __getstate__(self) -> dict[str, Any]:
-        keys = ("uri", "experiment", "artifact_location", "default_tags", "system_metrics_interval_s")
+        keys = ("uri", "experiment", "artifact_location", "default_tags", "system_metrics_interval_s", "lock_timeout_s")
         return {k: self.__dict__[k] for k in keys}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -114,8 +116,8 @@ class TrackingBackend:
     def _store_lock(self) -> contextlib.AbstractContextManager:
         if (db := sqlite_path(self.uri)) is None:
             return contextlib.nullcontext()
-        if getattr(self, "_filelock", None) is None:
-            self._filelock = FileLock(f"{db}.lock")  # reentrant: a method may call another
+        if getattr(self, "_filelock", None) is None:  # reentrant: a method may call another
+            self._filelock = StoreLock(db, getattr(self, "lock_timeout_s", DEFAULT_TIMEOUT_S))
         return self._filelock
 
     def ready(self) -> str:
@@ -300,7 +302,8 @@ def open_tracking(cfg_tracking: Any, owner_tags: Mapping[str, str] | None = None
     ``gdwm.owner``) go on every run the sink creates; ``close()`` stops monitors and kills the actor."""
     tags = dict(owner_tags) if owner_tags is not None else {OWNER_TAG: process_owner()}
     interval = float(_field(cfg_tracking, "system_metrics_interval_s", DEFAULT_SYSTEM_METRICS_INTERVAL_S))
-    args = (cfg_tracking.uri, cfg_tracking.experiment, cfg_tracking.artifact_location, tags, interval)
+    timeout = float(_field(cfg_tracking, "lock_timeout_s", DEFAULT_TIMEOUT_S))
+    args = (cfg_tracking.uri, cfg_tracking.experiment, cfg_tracking.artifact_location, tags, interval, timeout)
     if not cfg_tracking.single_writer:
         backend = TrackingBackend(*args)
         return backend, backend.close
