@@ -33,6 +33,7 @@ def register(cs: ConfigStore) -> None:
         register_callables("data.builder", dataset.builder)
         register_callables("data.planner", dataset.planner)
         register_callables("data.summarizer", dataset.summarizer)
+        register_callables("data.checker", dataset.checker)
     cs.store(group="schema/data", name="synthetic_mini", node=SynthConfig)
     cs.store(group="schema/data", name="nuscenes", node=NuScenesConfig)
     cs.store(group="schema/data", name="gaussiandwm_release", node=ReleaseConfig)

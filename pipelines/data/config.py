@@ -28,6 +28,9 @@ class DatasetConfig:
     planner: str | None = None
     """Dotted path of ``plan(cfg) -> list[str]``: checks the ``data.*`` keys and returns the scene ids ``build``
     would write, writing nothing (a dry run's plan; a bad key is exit 2 before anything is generated)."""
+    checker: str | None = "pipelines.data.check.check_files"
+    """Dotted path of ``check(root, files)``: reads the files that differ from what ``dataset.json`` recorded and
+    raises one error naming a bad one (an unreadable image, a non-finite reference box) before any stage runs."""
     summarizer: str = "pipelines.data.summary.render"
     """Dotted path of ``render(root) -> list`` of lines and rich tables: the dataset's summary, which gdwm prints
     (``gdwm data info``, and after a build)."""

@@ -1,11 +1,11 @@
 """Callables named in config resolve only to what gdwm or a plugin registered.
 
-A dataset's ``data.builder``, ``data.planner`` and ``data.summarizer`` are dotted paths that gdwm calls; a sweep row,
-a benchmark suite or a command line can carry them, so ``data.summarizer=shutil.rmtree`` must not be called with the
-dataset's root. A plugin registers the functions it provides (``gdwm.api.register_callables``, from its
-``gdwm.plugins`` entry point, which runs whenever a config is composed); anything else is a ``ConfigError`` naming the
-key and what is registered (exit 2), raised before any of them runs. Stages (``pipeline.stages.*._target_``) are
-checked the same way by what they are: a ``StageDef`` (``gdwm.dag``).
+A dataset's ``data.builder``, ``data.planner``, ``data.summarizer`` and ``data.checker`` are dotted paths that gdwm
+calls; a sweep row, a benchmark suite or a command line can carry them, so ``data.summarizer=shutil.rmtree`` must not
+be called with the dataset's root. A plugin registers the functions it provides (``gdwm.api.register_callables``,
+from its ``gdwm.plugins`` entry point, which runs whenever a config is composed); anything else is a ``ConfigError``
+naming the key and what is registered (exit 2), raised before any of them runs. Stages
+(``pipeline.stages.*._target_``) are checked the same way by what they are: a ``StageDef`` (``gdwm.dag``).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Any
 
 __all__ = ["DATA_FUNCTIONS", "register_callables", "resolve_callable"]
 
-DATA_FUNCTIONS = ("data.builder", "data.planner", "data.summarizer")
+DATA_FUNCTIONS = ("data.builder", "data.planner", "data.summarizer", "data.checker")
 """The config keys naming a dataset's functions."""
 
 _REGISTERED: dict[str, set[str]] = defaultdict(set)

@@ -18,7 +18,7 @@ import hashlib
 import json
 import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -197,15 +197,29 @@ _VERIFIED: dict[tuple, Verified] = {}
 """Per process: a sweep composes many trials over one dataset, and each checks it; re-hash and warn once."""
 
 
-def check_dataset(data: DictConfig, root: Path, meta: dict) -> dict:
+def check_dataset(data: DictConfig, root: Path, meta: dict, checker: Callable | None = None) -> dict:
     """``meta`` with the fingerprint of the files as they are now, after ``check_params`` (raises ``DataMismatch``)
-    and ``verify_dataset``; prints a warning when files differ from their record."""
+    and ``verify_dataset``: a file the record lists that is gone (a scene deleted) is a ``DataMismatch`` naming it,
+    and ``checker(root, files)`` (the dataset's ``data.checker``) reads the files that differ from their record
+    before any stage does; a warning says which files changed."""
     check_params(data, root, meta)
     stats = _stat_tree(root)
     key = (str(Path(root).resolve()), meta.get("fingerprint"), tuple(sorted(stats.items())))
     v = _VERIFIED.get(key)
     if v is None:
-        v = _VERIFIED[key] = verify_dataset(root, meta, stats)
+        v = verify_dataset(root, meta, stats)
+        if v.removed:
+            n = len(v.removed)
+            raise DataMismatch(
+                f"dataset {root}: {v.removed[0]} is listed in dataset.json but missing ({n} file{'s' * (n > 1)} "
+                f"missing): the dataset is incomplete; rebuild it ({build_hint(data)} overwrite=true)"
+            )
+        if checker is not None and (differ := [f for f in v.changed if f not in v.removed]):
+            try:
+                checker(root, differ)
+            except ValueError as e:  # the data layer's DataError: one line naming the file
+                raise DataMismatch(f"dataset {root}: {e}") from None
+        _VERIFIED[key] = v
         warning = describe(root, meta, v)
         if warning:
             err_console.print(f"warning: {warning}", markup=False)

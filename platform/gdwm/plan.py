@@ -388,10 +388,12 @@ def ensure_data(cfg: DictConfig, dry_run: bool = False) -> dict:
             from gdwm.datasets import build_hint
 
             raise RunError(f"dataset '{cfg.data.name}' not found at {root}: build it first ({build_hint(cfg.data)})")
+    from gdwm.callables import resolve_callable
     from gdwm.datasets import DataMismatch, check_dataset
 
+    checker = resolve_callable(cfg, "data.checker") if cfg.data.get("checker") else None
     try:  # the fingerprint of the files as they are now; params other than requested: exit 2 before anything runs
-        return check_dataset(cfg.data, root, read_dataset_meta(root))
+        return check_dataset(cfg.data, root, read_dataset_meta(root), checker)
     except DataMismatch as e:
         raise PlanError(str(e)) from e
 

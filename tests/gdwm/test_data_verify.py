@@ -5,16 +5,20 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from omegaconf import OmegaConf
 
 import gdwm.datasets as datasets
+from gdwm.cli import main
 from gdwm.datasets import DataMismatch, check_dataset, check_params, describe, verification_line, verify_dataset
+from pipelines.data.layout import QA_SCHEMA, DatasetWriter, image_relpath
 from tests.gdwm.test_run import Toy, _ok
 from tests.gdwm.toydata import make_dataset
 
@@ -185,3 +189,54 @@ def test_data_info_line(tmp_path):
     assert verification_line(root).startswith("verified: 7 files match dataset.json")
     edit_scenes_table(root)
     assert verification_line(root).startswith(f"warning: dataset {root}: scenes.parquet changed (re-hashed)")
+
+
+# ---- bad data is refused before anything runs ------------------------------------------------------------------
+def _with_image_and_qa(root: Path) -> Path:
+    """Two scenes, each with one image and one 2D grounding QA whose reference answer holds a box."""
+    with DatasetWriter(root, name="toy", source="test") as w:
+        for i in range(2):
+            sid = f"scene-{i:04d}"
+            w.add("scenes", scene_id=sid, name=sid, num_frames=1, frame_rate_hz=2.0, description="", weathers=[],
+                  source="test")  # fmt: skip
+            w.add("frames", scene_id=sid, frame_idx=0, timestamp_us=0, token=sid)
+            w.write_image(image_relpath(sid, "CAM_FRONT", 0), np.full((8, 16, 3), 100 + i, np.uint8))
+            turns = [{"from": "human", "value": "Where is the car?"},
+                     {"from": "gpt", "value": "<CAM_FRONT> <box>(1,2),(5,6)</box>"}]  # fmt: skip
+            w.add("qa", sample_id=f"s{i}", scene_token=sid, frame_idx=0, task="vg2d", category="2D_visual_grounding",
+                  conversations=turns, image=[], views=[], gauss=[], split="val", gt="{}")  # fmt: skip
+    return root
+
+
+def _dry_run(root: Path, tmp_path: Path, monkeypatch, capsys) -> tuple[int, str]:
+    monkeypatch.setenv("GDWM_CONF_PATH", str(Path(__file__).parents[1] / "conf"))
+    rc = main(["run", "--dry-run", "experiment=toy", f"data.root={root}", f"workdir={tmp_path / 'w'}"])
+    return rc, " ".join(capsys.readouterr().err.split())
+
+
+def test_a_scene_listed_but_missing_is_refused_naming_the_file(tmp_path, monkeypatch, capsys):
+    root = _with_image_and_qa(tmp_path / "ds")
+    shutil.rmtree(root / "scenes" / "scene-0001")  # still listed in scenes.parquet and dataset.json
+    rc, err = _dry_run(root, tmp_path, monkeypatch, capsys)
+    assert rc == 2 and err == (
+        f"gdwm run: dataset {root}: scenes/scene-0001/images/CAM_FRONT/00000.png is listed in dataset.json but missing "
+        "(1 file missing): the dataset is incomplete; rebuild it (gdwm data synth data=synthetic_mini overwrite=true)"
+    )
+
+
+@pytest.mark.parametrize("bad", ["truncated image", "nan box", "inf box", "negative box"])
+def test_bad_data_is_refused_before_compute_naming_the_file(tmp_path, monkeypatch, capsys, bad):
+    root = _with_image_and_qa(tmp_path / "ds")
+    image = root / image_relpath("scene-0001", "CAM_FRONT", 0)
+    if bad == "truncated image":
+        image.write_bytes(image.read_bytes()[:40])
+        why = f"{image.relative_to(root)}: unreadable image (OpenCV cannot decode it)"
+    else:
+        box = {"nan box": "(nan,2),(5,6)", "inf box": "(1,2),(inf,6)", "negative box": "(-3,2),(5,6)"}[bad]
+        table = pq.read_table(root / "qa.parquet").to_pylist()
+        table[1]["conversations"][1]["value"] = f"<CAM_FRONT> <box>{box}</box>"
+        pq.write_table(pa.Table.from_pylist(table, schema=QA_SCHEMA), root / "qa.parquet")
+        kind = "negative" if bad == "negative box" else "not finite"
+        why = f"qa.parquet: sample s1: the reference box {box} is {kind}"
+    rc, err = _dry_run(root, tmp_path, monkeypatch, capsys)
+    assert rc == 2 and err.startswith(f"gdwm run: dataset {root}: {why}"), err
