@@ -43,6 +43,23 @@ def _where(text: str) -> str:
     return f"Ray task {name}"
 
 
+_NODE_MEMORY = re.compile(r"Memory on the node .*? was ([\d.]+\s*\w+ used / [\d.]+\s*\w+ limit)")
+_KILLED_USED = re.compile(r"actual memory used=([\d.]+\s*\w+)")
+
+
+def oom_line(e: BaseException) -> str:
+    """Ray's many-line out-of-memory report as one line: how full the node was and what the killed worker held."""
+    text = str(e)
+    node = _NODE_MEMORY.search(text)
+    used = _KILLED_USED.search(text)
+    return (
+        "out of memory: Ray's OOM killer ended the worker"
+        + (f" (it held {used[1]})" if used else "")
+        + (f", the node's memory being {node[1]}" if node else "")
+        + "; give the stage more memory or fewer parallel workers (cluster.resources)"
+    )
+
+
 def one_line(e: BaseException) -> str:
     """``Type: message`` of ``e``, or for a Ray error the original error and where it was raised; a ``gdwm_hint``
     attached on the way out (what became of the runs, say) is appended."""
@@ -54,6 +71,8 @@ def _one_line(e: BaseException) -> str:
     import ray.exceptions as rex  # here, not at import: the CLI's --help must not load Ray
 
     if isinstance(e, rex.RayError):
+        if isinstance(e, rex.OutOfMemoryError):
+            return oom_line(e)
         if isinstance(e, rex.RayTaskError):
             cause = e.cause if isinstance(e.cause, BaseException) else None
             what = one_line(cause) if cause is not None else _last_error_line(str(e))

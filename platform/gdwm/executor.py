@@ -27,6 +27,7 @@ import ray
 
 from gdwm.cache import Cache, Manifest, cache_key
 from gdwm.determinism import stage_start
+from gdwm.errors import oom_line
 from gdwm.fromenv import masked, restore
 from gdwm.keylock import KeyLock
 from gdwm.stage import StageContext, StageDef, UpstreamOutput
@@ -506,6 +507,9 @@ def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, bases, don
             s, actor = running.pop(ref)
             try:
                 done[s] = (keys[s], ray.get(ref))
+            except ray.exceptions.OutOfMemoryError as e:  # the scene's worker filled the node: not retried
+                errors[s] = oom_line(e)
+                _progress(env, sd.name, s, "failed", message="out of memory")
             except ray.exceptions.RayTaskError as e:
                 errors[s] = _user_traceback(e)
                 _progress(env, sd.name, s, "failed", message=str(e.cause)[:200] if e.cause else "")

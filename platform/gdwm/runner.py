@@ -43,7 +43,7 @@ from gdwm.cache import CACHE_KEYS, Cache
 from gdwm.config import SweepConfig
 from gdwm.dag import Pipeline
 from gdwm.determinism import worker_env
-from gdwm.errors import one_line
+from gdwm.errors import one_line, oom_line
 from gdwm.executor import (
     REUSED_SAME,
     StageFailed,
@@ -150,10 +150,11 @@ def init_ray(cfg: DictConfig) -> SimCluster | bool:
                 raise
             console.print(started.describe(), markup=False)
         else:
-            # address="local": a new Ray of its own, never a cluster some other process started on this machine
-            ray.init(
-                address="local", num_cpus=c.num_cpus, num_gpus=c.num_gpus, runtime_env={"env_vars": env_vars}, **kwargs
-            )
+            # address="local": a new Ray of its own, never a cluster some other process started on this machine.
+            # A worker Ray's OOM killer ended is not retried (Ray's default retries it 15 times, minutes of the same
+            # end): the stage fails at once naming itself (and its scene).
+            ray.init(address="local", num_cpus=c.num_cpus, num_gpus=c.num_gpus, runtime_env={"env_vars": env_vars},
+                     _system_config={"task_oom_retries": 0}, **kwargs)  # fmt: skip
     if threading.current_thread() is threading.main_thread():
         # ray.init's own SIGTERM handler exits 1; exit 143 as a terminated process should (finally shuts Ray).
         signal.signal(signal.SIGTERM, _sigterm)
@@ -409,7 +410,20 @@ def _outcome(ref: ray.ObjectRef, stage: str) -> Outcome:
         root = _root_cause(e)
         if isinstance(root, StageFailed) and root.stage != stage:
             return None
+        if isinstance(root, ray.exceptions.OutOfMemoryError):  # Ray's report is many lines; the cause fits in one
+            return f"stage '{stage}' failed: {oom_line(root)}"
         return StageFailed.__str__(root) if isinstance(root, StageFailed) else f"stage '{stage}' failed: {root!r}"
+
+
+def _with_running_scenes(message: str, stage: str, progress) -> str:
+    """An out-of-memory end of a per-scene stage's coordinating task (Ray's OOM killer may pick it over the actor
+    that filled the node) names the scenes the board shows running then, one of which filled it."""
+    head = f"stage '{stage}' failed: out of memory"
+    if not message.startswith(head):
+        return message
+    items = ray.get(progress.snapshot.remote())
+    scenes = sorted(i.scene for i in items if i.stage == stage and i.scene is not None and i.status == "running")
+    return message.replace(f"stage '{stage}'", f"stage '{stage}' scene(s) {scenes}", 1) if scenes else message
 
 
 def _print_stage(k: tuple[str, str], r: Outcome, users: list[str]) -> None:
@@ -458,6 +472,8 @@ def execute(
         for ref in ready:
             k = pending.pop(ref)
             outcome[k] = _outcome(ref, k[0])
+            if isinstance(outcome[k], str) and progress is not None:
+                outcome[k] = _with_running_scenes(outcome[k], k[0], progress)
             if print_stages:
                 _print_stage(k, outcome[k], users[k])
             if isinstance(outcome[k], StageResult) and not outcome[k].cached:

@@ -104,7 +104,7 @@ class SimCluster:
         AuthenticationTokenLoader.instance().reset_cache()
         period_ms = max(100, int(self.sim.health_check_s * 1000))
         system = {"health_check_period_ms": period_ms, "health_check_timeout_ms": period_ms,
-                  "health_check_failure_threshold": 3}  # fmt: skip
+                  "health_check_failure_threshold": 3, "task_oom_retries": 0}  # fmt: skip
         mem = self.sim.object_store_mb * 1024 * 1024
         try:
             # shutdown_at_exit: the nodes share this process's fate (the kernel kills them if it dies, even by SIGKILL)

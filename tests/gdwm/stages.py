@@ -4,6 +4,7 @@ GDWM_TEST_DIR      every execution appends "<stage> <scene>" to executions.log h
 GDWM_TEST_KILL     "stage:scene" (or "stage:step=N" for training) — SIGKILL the worker once (marker file)
 GDWM_TEST_FAIL     "stage:scene" — raise ValueError in that scene ("stage:seed=N": in that trial seed's execution)
 GDWM_TEST_BLOCK    "stage" or "stage:step=N" — wait until GDWM_TEST_DIR/release exists (a test kills the driver)
+GDWM_TEST_HOG      "stage:scene" — fill memory until Ray's OOM killer ends the worker (up to 12 GB)
 GDWM_TEST_FILL     "stage:PATH" — the stage fills the disk of PATH: writes PATH until no space is left, and leaves it
 """
 
@@ -49,6 +50,8 @@ def _inject(ctx: StageContext) -> None:
         raise ValueError(f"injected failure in {os.environ['GDWM_TEST_FAIL']}")
     if os.environ.get("GDWM_TEST_BLOCK") == ctx.name:
         _block(ctx.name)
+    if os.environ.get("GDWM_TEST_HOG") == target:
+        _hog()
     fill, _, path = os.environ.get("GDWM_TEST_FILL", "").partition(":")
     if fill == ctx.name and _once("fill"):
         _fill(Path(path))
@@ -68,6 +71,14 @@ def _fill(path: Path) -> None:
                 f.write(b"\0")
         except OSError:
             pass
+
+
+def _hog(most_gb: float = 12.0) -> None:
+    """Fill memory (touched pages) until Ray's OOM killer ends this worker; give up at ``most_gb``."""
+    chunks = []
+    while len(chunks) * 0.25 < most_gb:
+        chunks.append(np.ones(1 << 25))  # 256 MiB, written
+        time.sleep(0.05)
 
 
 def _block(name: str) -> None:

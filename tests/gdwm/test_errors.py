@@ -3,9 +3,11 @@ null, a disk that fills mid-run (its runs ended by the next run)."""
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 import sys
+import time
 import uuid
 from collections import Counter
 from pathlib import Path
@@ -117,3 +119,27 @@ def test_a_disk_that_fills_mid_run(small_disk, tmp_path):
     statuses = Counter(x.info.status for x in toy.runs() + toy.runs("run"))
     assert "RUNNING" not in statuses and statuses["FINISHED"] >= 7
     assert Path(toy.root / "executions.log").read_text().split()[0] in ("evaluate_qa", "evaluate_gen")
+
+
+def test_a_scene_filling_the_node_s_memory_ends_the_run_with_one_line_naming_stage_and_scene(tmp_path):
+    """Ray's OOM killer ends the worker of reconstruct's scene-0001 (the threshold set just above what the machine
+    uses now): the run exits 1 at once (no minutes of Ray's retries) with one line naming stage and scene."""
+    import psutil
+
+    toy = Toy(tmp_path)
+    vm = psutil.virtual_memory()
+    threshold = min(0.95, (vm.total - vm.available + 6e9) / vm.total)  # 3 GB above the machine's use now
+    env = {"GDWM_TEST_HOG": "reconstruct:scene-0001", "RAY_memory_usage_threshold": f"{threshold:.3f}",
+           "RAY_memory_monitor_refresh_ms": "100"}  # fmt: skip
+    t0 = time.monotonic()
+    r = toy.run("targets=[reconstruct]", "run.live=false", **env)
+    took = time.monotonic() - t0
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 1, r.stderr[-3000:]
+    assert re.fullmatch(
+        r"gdwm run: stage 'reconstruct' scene\(s\) \['scene-0001'\] failed: out of memory: Ray's OOM killer ended the "
+        r"worker \(it held [\d.]+GB\), the node's memory being [\d.]+GB used / [\d.]+GB limit; give the stage more "
+        r"memory or fewer parallel workers \(cluster.resources\)",
+        last,
+    ), last
+    assert "Top 10 memory users" not in r.stdout + r.stderr and took < 240
