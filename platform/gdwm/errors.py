@@ -6,7 +6,12 @@ terminal colours; ``one_line`` digs out the original error and the task or actor
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import os
 import re
+import shutil
+from pathlib import Path
 
 
 class CommandError(Exception):
@@ -87,5 +92,25 @@ def _one_line(e: BaseException) -> str:
         else:
             what, where = _last_error_line(str(e)), ""
         return f"{what} (in {where})" if where else what
+    if isinstance(e, OSError) and e.errno in _ENVIRONMENT and e.filename:
+        return environment_line(e)
     msg = str(e).strip().splitlines()[0] if str(e).strip() else ""
     return f"{type(e).__name__}: {msg}" if msg else type(e).__name__
+
+
+_ENVIRONMENT = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM}
+"""What the machine refuses (a full disk, a quota, a read-only or foreign file system), as opposed to a bug."""
+
+
+def environment_line(e: OSError) -> str:
+    """``<path>: <what> (<where it is, and what to change>)``: which file, on which file system, and why."""
+    path = Path(os.fsdecode(e.filename))
+    what = f"{path}: {e.strerror}"
+    home = Path.home()
+    if e.errno in (errno.ENOSPC, errno.EDQUOT):
+        with contextlib.suppress(OSError):
+            where = next(p for p in (path, *path.parents) if p.exists())
+            what += f" ({shutil.disk_usage(where).free / 1e6:.1f} MB free on that file system)"
+    if path == home or home in path.parents:
+        what += f"; it is under HOME ({home}), which gdwm and Ray write to: point HOME at a writable directory"
+    return what

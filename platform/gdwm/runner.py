@@ -67,6 +67,7 @@ from gdwm.plan import (
     print_reasons,
     resolve_seeds,
 )
+from gdwm.preflight import check_ray_temp
 from gdwm.progress import ProgressActor, render
 from gdwm.simcluster import SimCluster, SimConfig
 from gdwm.term import console, err_console
@@ -137,6 +138,8 @@ def init_ray(cfg: DictConfig) -> SimCluster | bool:
         # A cluster's workers run the installed wheel (k8s/Dockerfile); the driver's paths mean nothing there.
         ray.init(address=c.address, runtime_env={"env_vars": env_vars}, **kwargs)
     else:
+        if why := check_ray_temp():  # Ray's own symptom is a timeout a minute later
+            raise RunError(why)
         # Local workers import the stage modules from wherever the driver does.
         env_vars["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
         if c.get("sim") is not None:

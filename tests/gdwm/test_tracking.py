@@ -452,3 +452,18 @@ def test_reconcile_kills_runs_of_dead_owners_only(cfg, tmp_path):
     assert run_of(backend, dead)["tags"][OWNER_TAG] == process_owner()
     assert backend.reconcile() == []
     assert sorted(backend.reconcile(is_alive=lambda owner: owner != process_owner())) == sorted([dead, mine])
+
+
+def test_a_store_deleted_while_in_use_is_named_in_one_line(tmp_path):
+    """mlflow.db removed under a running command: sqlite says "attempt to write a readonly database"; gdwm says the
+    store was deleted."""
+    db = tmp_path / "mlflow.db"
+    backend = TrackingBackend(f"sqlite:///{db}", EXPERIMENT, str(tmp_path / "mlartifacts"), system_metrics_interval_s=0)
+    run_id = backend.create_run("r", {})
+    db.unlink()
+    with pytest.raises(TrackingError) as e:
+        backend.log_params(run_id, {"a": 1})
+    assert str(e.value) == (
+        f"tracking store {db} was deleted while gdwm was using it (MlflowException: (sqlite3.OperationalError) attempt "
+        "to write a readonly database); the runs of this command went with it: run it again to start a new store"
+    )

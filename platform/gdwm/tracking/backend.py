@@ -9,6 +9,7 @@ import time
 import uuid
 from collections.abc import Callable, Mapping
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any, TypeVar
 
 import ray
@@ -56,7 +57,17 @@ def _one_writer(cls: _C) -> _C:
         @functools.wraps(fn)
         def wrapper(self, *args, **kwargs):
             with self._store_lock():
-                return fn(self, *args, **kwargs)
+                try:
+                    return fn(self, *args, **kwargs)
+                except Exception as e:
+                    db = sqlite_path(self.uri)
+                    if fn.__name__ == "_connect" or db is None or Path(db).exists() or isinstance(e, TrackingError):
+                        raise
+                    # sqlite's own words are "attempt to write a readonly database"
+                    raise TrackingError(
+                        f"tracking store {db} was deleted while gdwm was using it ({one_line(e).splitlines()[0]}); "
+                        "the runs of this command went with it: run it again to start a new store"
+                    ) from e
 
         return wrapper
 
