@@ -34,7 +34,7 @@ from gdwm.tracking.params import (
     flatten_params,
     truncate,
 )
-from gdwm.tracking.storelock import DEFAULT_TIMEOUT_S, StoreLock
+from gdwm.tracking.storelock import DEFAULT_TIMEOUT_S, StoreLock, StoreLockTimeout
 from gdwm.zoo import registry as zoo
 
 log = logging.getLogger(__name__)
@@ -56,18 +56,20 @@ def _one_writer(cls: _C) -> _C:
     def locked(fn: Callable) -> Callable:
         @functools.wraps(fn)
         def wrapper(self, *args, **kwargs):
-            with self._store_lock():
-                try:
+            try:
+                with self._store_lock():
                     return fn(self, *args, **kwargs)
-                except Exception as e:
-                    db = sqlite_path(self.uri)
-                    if fn.__name__ == "_connect" or db is None or Path(db).exists() or isinstance(e, TrackingError):
-                        raise
-                    # sqlite's own words are "attempt to write a readonly database"
-                    raise TrackingError(
-                        f"tracking store {db} was deleted while gdwm was using it ({one_line(e).splitlines()[0]}); "
-                        "the runs of this command went with it: run it again to start a new store"
-                    ) from e
+            except StoreLockTimeout as e:  # one line naming the lock and its holder
+                raise TrackingError(str(e)) from None
+            except Exception as e:
+                db = sqlite_path(self.uri)
+                if fn.__name__ == "_connect" or db is None or Path(db).exists() or isinstance(e, TrackingError):
+                    raise
+                # sqlite's own words are "attempt to write a readonly database"
+                raise TrackingError(
+                    f"tracking store {db} was deleted while gdwm was using it ({one_line(e).splitlines()[0]}); "
+                    "the runs of this command went with it: run it again to start a new store"
+                ) from e
 
         return wrapper
 

@@ -3,7 +3,7 @@
 A driver that hangs, or was stopped (SIGSTOP, a suspended terminal) while holding the lock, must not make every other
 command wait forever in silence: after ``NOTICE_S`` the waiter says whom it waits for (the holder's pid, from
 ``/proc/locks`` where the kernel shows it), and after ``timeout_s`` it gives up with one line naming the lock and the
-holder (``TrackingError``, exit 1).
+holder (``StoreLockTimeout``, a ``TrackingError`` to the caller; exit 1).
 """
 
 from __future__ import annotations
@@ -41,6 +41,11 @@ def lock_holder(path: str | os.PathLike) -> str:
     return "another process"
 
 
+class StoreLockTimeout(TimeoutError):
+    """The lock stayed held past the timeout; the message names the lock and its holder (the backend raises it as a
+    ``TrackingError``)."""
+
+
 class StoreLock:
     """Re-entrant (a locked method may call another); ``with lock:`` waits up to ``timeout_s``."""
 
@@ -66,9 +71,7 @@ class StoreLock:
         try:
             self._lock.acquire(timeout=max(0.0, self.timeout_s - NOTICE_S))
         except Timeout:
-            from gdwm.tracking.backend import TrackingError
-
-            raise TrackingError(
+            raise StoreLockTimeout(
                 f"tracking store {self.db}: its lock {Path(self.path).name} is still held by {lock_holder(self.path)} "
                 f"after {self.timeout_s:g} s; stop that process if it hangs, or raise tracking.lock_timeout_s"
             ) from None
