@@ -4,12 +4,14 @@
   gc`` and ``gdwm cache invalidate`` act only on a root that has it, and a launch refuses a ``cache.uri`` that holds
   anything else (a typo pointing at a home directory, another tool's store): exit 2, naming the first stranger.
 - a report directory (``gdwm compare``'s ``args.out``, ``<workdir>/reports/<sweep>``): ``.gdwm-report``, written
-  when gdwm creates it; reports are written only into an empty directory or one that has it.
+  when gdwm creates it; reports are written only into an empty directory or one that has it. A zoo download
+  (``gdwm zoo load``'s ``args.out``) likewise carries ``.gdwm-download``.
 
 Directories an older gdwm wrote without a marker are recognised by gdwm's own layout and marked on first use: a cache
 whose top level holds only stage directories (each holding only ``<2 hex>`` shards, ``.used`` and ``.bases``) and
 ``.locks``, with at least one readable manifest; a report directory holding only report files (``*.md``, ``*.tex``,
-``*.csv``, ``*.html``). Anything else is refused, never marked. (Datasets are marked by their ``dataset.json``.)
+``*.csv``, ``*.html``), a download holding a version's ``MLmodel``. Anything else is refused, never marked.
+(Datasets are marked by their ``dataset.json``.)
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import json
 import re
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pyarrow.fs as pafs
@@ -24,6 +27,7 @@ import pyarrow.fs as pafs
 CACHE_MARKER = ".gdwm-cache"
 REPORT_MARKER = ".gdwm-report"
 REPORT_SUFFIXES = (".md", ".tex", ".csv", ".html")
+DOWNLOAD_MARKER = ".gdwm-download"
 _CACHE_DOT_DIRS = frozenset({".locks"})
 _STAGE_DOT_DIRS = frozenset({".used", ".bases"})
 _STAGE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
@@ -93,19 +97,33 @@ def own_cache(cache, create: bool) -> str:
     return state
 
 
-# ---- report directories ----------------------------------------------------------------------------------------------
-def own_report_dir(out: Path) -> None:
-    """Make ``out`` a report directory gdwm may write into: created (and marked) if absent or empty, marked if it
-    holds only report files of an older gdwm; ``NotOurs`` when it holds anything else."""
+# ---- output directories ------------------------------------------------------------------------------------------
+def own_dir(out: Path, marker: str, what: str, legacy: Callable[[list[Path]], bool], create: bool = True) -> None:
+    """Make ``out`` a directory gdwm may write into: created (and marked) if absent or empty, marked if ``legacy``
+    recognises its contents as an older gdwm's; ``NotOurs`` when it holds anything else. ``create=False`` only
+    checks (the caller marks it once it wrote something)."""
     out = Path(out)
-    if (out / REPORT_MARKER).is_file():
+    if (out / marker).is_file():
         return
     if out.exists():
         if not out.is_dir():
-            raise NotOurs(f"{out}: not a directory; reports go into a directory gdwm creates")
-        strangers = sorted(p.name for p in out.iterdir() if not (p.is_file() and p.suffix in REPORT_SUFFIXES))
-        if strangers:
-            raise NotOurs(f"{out}: not a gdwm report directory ({strangers[0]} is not gdwm's, and there is no "
-                          f"{REPORT_MARKER}); choose an empty or new directory")  # fmt: skip
-    out.mkdir(parents=True, exist_ok=True)
-    (out / REPORT_MARKER).write_bytes(_marker_text("report"))
+            raise NotOurs(f"{out}: not a directory; {what}s go into a directory gdwm creates")
+        inside = sorted(out.iterdir())
+        if inside and not legacy(inside):
+            raise NotOurs(f"{out}: not a gdwm {what} directory ({inside[0].name} is not gdwm's, and there is no "
+                          f"{marker}); choose an empty or new directory")  # fmt: skip
+    if create:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / marker).write_bytes(_marker_text(what))
+
+
+def own_report_dir(out: Path) -> None:
+    """``own_dir`` for ``gdwm compare``'s outputs: an older gdwm's folder holds only report files."""
+    own_dir(
+        out, REPORT_MARKER, "report", lambda inside: all(p.is_file() and p.suffix in REPORT_SUFFIXES for p in inside)
+    )
+
+
+def own_download_dir(out: Path, create: bool = True) -> None:
+    """``own_dir`` for ``gdwm zoo load``: an older gdwm's download holds the version's ``MLmodel``."""
+    own_dir(out, DOWNLOAD_MARKER, "download", lambda inside: any(p.name == "MLmodel" for p in inside), create)

@@ -113,7 +113,7 @@ def test_promote_then_load_returns_the_stage_output_byte_for_byte(zoo, tmp_path)
     published = _files(zoo.entry("zoo_train", entry.key) / "model")
     loaded = _files(tmp_path / "v1")
     assert {k: loaded[k] for k in published} == published
-    assert set(loaded) == {*published, "MLmodel"}
+    assert set(loaded) == {*published, "MLmodel", ".gdwm-download"}
     # @ALIAS also works as a version; promoting the candidate moves champion to version 2
     _ok(zoo.gdwm("zoo", "promote", "args.name=gdwm-toy", "args.version=@candidate", "args.alias=champion"))
     assert zoo.aliases() == {"candidate": 2, "champion": 2}
@@ -250,4 +250,31 @@ def test_zoo_load_refuses_a_version_whose_files_lie_outside_its_run(tmp_path):
         assert not out.exists()
     (run_dir / "zoo" / "gdwm-x" / "link.pth").unlink()
     _ok(zoo.gdwm("zoo", "load", "args.name=gdwm-x", "args.version=1", f"args.out={tmp_path / 'v1'}"))
-    assert _files(tmp_path / "v1") == {"w.bin": b"ok", "MLmodel": (run_dir / "zoo" / "gdwm-x" / "MLmodel").read_bytes()}
+    got = _files(tmp_path / "v1")
+    assert got.pop(".gdwm-download").startswith(b'{"gdwm": "download"')  # the folder is gdwm's now
+    assert got == {"w.bin": b"ok", "MLmodel": (run_dir / "zoo" / "gdwm-x" / "MLmodel").read_bytes()}
+
+
+def test_zoo_load_writes_only_into_a_folder_gdwm_owns(tmp_path, capsys):
+    """args.out naming a user's folder is refused and left as it was; a fresh one is created and marked."""
+    from gdwm.cli import main
+
+    work = tmp_path / "w"
+    backend = TrackingBackend(f"sqlite:///{work.resolve()}/mlflow.db", "gdwm", str(work / "mlartifacts"))
+    component = tmp_path / "c"
+    component.mkdir()
+    (component / "w.bin").write_bytes(b"weights")
+    assert backend.register_component(backend.create_run("r", {}), "gdwm-x", str(component), "v", {}) == 1
+    backend.close()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "w.bin").write_bytes(b"my own file")
+    args = ["zoo", "load", f"workdir={work}", "args.name=gdwm-x", "args.version=1"]
+    assert main([*args, f"args.out={mine}"]) == 1
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (  # after MLflow's own lines creating the store
+        f"gdwm zoo load: CommandError: {mine}: not a gdwm download directory (w.bin is not gdwm's, and there is no "
+        ".gdwm-download); choose an empty or new directory"
+    )
+    assert (mine / "w.bin").read_bytes() == b"my own file" and sorted(os.listdir(mine)) == ["w.bin"]
+    assert main([*args, f"args.out={tmp_path / 'fresh'}"]) == 0
+    assert (tmp_path / "fresh" / ".gdwm-download").is_file() and "MLmodel" in os.listdir(tmp_path / "fresh")

@@ -12,6 +12,8 @@ from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
 from gdwm.config import sqlite_path
+from gdwm.errors import CommandError
+from gdwm.owned import NotOurs, own_download_dir
 from gdwm.redact import redact
 from gdwm.term import console
 from gdwm.zoo.refs import CHAMPION, ZooArgs, ZooError
@@ -130,7 +132,12 @@ def zoo_load(cfg: DictConfig) -> int:
     args, client = _args(cfg), _client(cfg)
     mv = _selected(client, args, args.alias)
     out = Path(args.out) if args.out else Path(cfg.workdir) / "zoo" / mv.name / str(mv.version)
+    try:  # files land in a folder gdwm owns, never over a user's (gdwm.owned); marked once they are there
+        own_download_dir(out.resolve(), create=False)
+    except NotOurs as e:
+        raise CommandError(str(e)) from None
     path = download(cfg.tracking.uri, mv.name, int(mv.version), out.resolve())
+    own_download_dir(out.resolve())
     console.print(f"{mv.name} version {mv.version} -> {path}", soft_wrap=True)
     return 0
 
