@@ -25,7 +25,7 @@ from rich.table import Table
 from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config, sqlite_path, ui_url
 from gdwm.errors import CommandError, one_line
 from gdwm.redact import redact, redact_config
-from gdwm.term import console, err_console
+from gdwm.term import console, err_console, verbosity
 
 
 @dataclass
@@ -64,17 +64,29 @@ def _run(cfg: DictConfig, args: list[str]) -> int:
     try:
         # `gdwm run` has no command defaults: its config is composed from the user's overrides alone, and so is each
         # seed's (seeds=[...])
-        summary = run_pipeline(cfg, [a for a in args if not a.startswith("--")], dry_run="--dry-run" in args)
+        summary = run_pipeline(cfg, [a for a in args if not a.startswith("--")], dry_run="--dry-run" in args,
+                               verbosity=verbosity(args))  # fmt: skip
     except (DagError, PlanError) as e:
         err_console.print(f"gdwm run: {'pipeline error: ' if isinstance(e, DagError) else ''}{e}", markup=False)
         return 2
     except RunError as e:
         err_console.print(f"gdwm run: {e}", markup=False)
         return 1
+    _say_failures("gdwm run", summary)
+    return 0 if summary.ok else 1
+
+
+def _say_failures(command: str, summary) -> None:
+    """One line per failed stage execution (its cause names the traceback file), and how many stages it blocked."""
+    seen: set[str] = set()
     for t in summary.trials:
         for msg in t.failed.values():
-            err_console.print(f"gdwm run: {msg}", markup=False)
-    return 0 if summary.ok else 1
+            if msg not in seen:
+                seen.add(msg)
+                blocked = len({s for x in summary.trials for s in x.blocked})
+                where = f"trial '{t.trial.name}': " if len(summary.trials) > 1 else ""
+                err_console.print(f"{command}: {where}{msg}" + (f"; {blocked} stage(s) downstream blocked" if
+                                  blocked and len(summary.trials) == 1 else ""), markup=False)  # fmt: skip
 
 
 def _status(cfg: DictConfig, _args: list[str]) -> int:
@@ -230,8 +242,8 @@ COMMANDS: dict[str, dict[str, Command]] = {
         "": Command(
             _run,
             "run the pipeline DAG (targets=[...], pipeline=..., seeds=[0,1,2] for a trial per seed, --dry-run prints "
-            "the plan)",
-            flags=("--dry-run",),
+            "the plan; --quiet: failures only, --verbose: every stage start and scene)",
+            flags=("--dry-run", "--quiet", "--verbose"),
         ),
     },
     "status": {
@@ -242,8 +254,9 @@ COMMANDS: dict[str, dict[str, Command]] = {
             _sweep,
             "run an ablation table: sweep=NAME (conf/sweep/), overrides for every trial, seeds=[0,1,2] for a trial "
             "per seed; shared stages run once; --dry-run prints trials x stages (cached / shared / to run) and the "
-            "capacity plan on the cluster (--durations=FILE: measured seconds per task, JSON stage -> seconds)",
-            flags=("--dry-run",),
+            "capacity plan on the cluster (--durations=FILE: measured seconds per task, JSON stage -> seconds); "
+            "--quiet / --verbose",
+            flags=("--dry-run", "--quiet", "--verbose"),
             options=("--durations",),
         ),
     },
@@ -252,9 +265,10 @@ COMMANDS: dict[str, dict[str, Command]] = {
             _regress,
             "benchmark regression: benchmark=NAME (conf/benchmark/, default nightly) vs its baseline; exit 0 ok, "
             "1 regression, 2 error; --set-baseline records this run as the baseline; evaluation targets and stages "
-            "whose code changed recompute, --fresh recomputes every stage",
+            "whose code changed recompute, --fresh recomputes every stage; --dry-run prints the plan and the baseline "
+            "without running; --quiet / --verbose",
             defaults=["benchmark=nightly"],
-            flags=("--set-baseline", "--fresh"),
+            flags=("--set-baseline", "--fresh", "--dry-run", "--quiet", "--verbose"),
         ),
     },
     "compare": {

@@ -30,7 +30,7 @@ from rich.table import Table
 
 from gdwm.compare.layout import Direction
 from gdwm.config import BenchmarkConfig, CheckTest, ConfigError, MetricCheck, load_config
-from gdwm.term import console, err_console
+from gdwm.term import console, err_console, verbosity
 
 KIND = "regression"
 BASELINE_TAG = "gdwm.baseline"
@@ -171,7 +171,8 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
             f"(benchmark.seeds has {n_seeds})"
         )
     try:
-        summary = run_pipeline(run_cfg, overrides, seeds=bench.seeds, seeds_key="benchmark.seeds", live=False)
+        summary = run_pipeline(run_cfg, overrides, seeds=bench.seeds, seeds_key="benchmark.seeds", live=False,
+                               verbosity=verbosity(argv))
     except PlanError as e:
         raise RegressError(f"benchmark '{bench.name}': {e}") from e
     if not summary.ok:
