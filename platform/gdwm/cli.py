@@ -418,6 +418,22 @@ def _join_options(args: list[str], options: tuple[str, ...]) -> tuple[list[str],
     return out, None
 
 
+def _follow_workdir(cfg: DictConfig) -> None:
+    """A workdir copied or moved since its last command: its store's artifact locations point at it again before
+    any command reads or writes them (``gdwm.tracking.relocate``)."""
+    uri = OmegaConf.select(cfg, "tracking.uri", default=None)
+    location = OmegaConf.select(cfg, "tracking.artifact_location", default=None)
+    db = sqlite_path(str(uri)) if uri else None
+    if db is None or not location or not Path(db).is_file():
+        return
+    from filelock import FileLock
+
+    from gdwm.tracking.relocate import relocate_store
+
+    with FileLock(f"{db}.lock"):  # the store's one-writer lock (gdwm.tracking.backend)
+        relocate_store(str(uri), str(location))
+
+
 def _terminated(signum: int, _frame) -> None:
     raise SystemExit(128 + signum)
 
@@ -469,6 +485,7 @@ def main(argv: list[str] | None = None) -> int:
         err_console.print(f"gdwm: config error: {e}", markup=False)
         return 2
     name = f"{command} {sub}".strip()
+    _follow_workdir(cfg)
     main_thread = threading.current_thread() is threading.main_thread()
     # SIGTERM unwinds like Ctrl-C: temp directories and open runs are cleaned up on the way out (exit 143)
     previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
