@@ -12,7 +12,9 @@ Lines (``Lines``), for CI logs, ``kubectl logs`` and files, one per event at ``n
 
 from __future__ import annotations
 
+import contextlib
 import time
+from collections.abc import Iterator
 
 from rich.console import Group
 from rich.table import Table
@@ -20,12 +22,39 @@ from rich.text import Text
 
 from gdwm.events import Event
 from gdwm.progress import Execution, LaunchProgress, duration
-from gdwm.term import NORMAL, VERBOSE
+from gdwm.term import NORMAL, QUIET, VERBOSE
 
 STYLE = {"cached": "cyan", "shared": "cyan", "done": "green", "failed": "red", "running": "yellow",
          "blocked": "magenta", "pending": "dim"}  # fmt: skip
 BOARD_TRIALS = 12
 """The board lists at most this many trials (running and failed first); the rest as counts."""
+
+
+@contextlib.contextmanager
+def resampling_progress(command: str, every_s: float = 5.0, verbosity: int = NORMAL) -> Iterator[None]:
+    """While it is open, a bootstrap (``gdwm.compare.stats``) prints a line every ``every_s``: the stage, resamples
+    scored of those planned, elapsed and ETA (and the ``bootstrap`` events of ``gdwm.events`` in the same words)."""
+    from gdwm.compare.stats import ON_RESAMPLE
+    from gdwm.term import console
+
+    state: dict[str, float] = {}
+
+    def hook(stage: str, done: int, total: int) -> None:
+        now = time.monotonic()
+        start = state.setdefault(f"start:{stage}", now)
+        if verbosity == QUIET or now - state.get("last", start) < every_s:
+            return
+        state["last"] = now
+        done_shown = min(done, total)
+        eta = (now - start) * (total - done_shown) / done_shown if done_shown < total else 0.0
+        line = f"{command}: bootstrap {stage}: {done_shown}/{total} resamples, {duration(now - start)} elapsed"
+        console.print(f"{_stamp(time.time())} {line}, ETA {duration(eta)}", markup=False, highlight=False)
+
+    token = ON_RESAMPLE.set(hook)
+    try:
+        yield
+    finally:
+        ON_RESAMPLE.reset(token)
 
 
 def _stamp(t: float) -> str:

@@ -30,6 +30,7 @@ from gdwm.determinism import stage_start
 from gdwm.keylock import KeyLock
 from gdwm.stage import StageContext, StageDef, UpstreamOutput
 from gdwm.tracking import Sink, Tracker, TrackingClient
+from gdwm.tracking.params import flatten_params, relative_paths
 from gdwm.zoo.registry import lineage_tags
 
 TAG_STAGE, TAG_KEY, TAG_VERSION, TAG_SCENES = "gdwm.stage", "gdwm.cache_key", "gdwm.version", "gdwm.scenes"
@@ -274,7 +275,8 @@ def _stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping) -> str:
     if found:
         tags[TAG_RECOMPUTES] = found[0]["run_id"]
     run_id = env.tracking.create_run(f"{sd.name}-{key[:8]}", tags, env.parent_run_id)
-    env.tracking.log_params(run_id, dict(subset))
+    # paths relative to the workdir (the checkpoint root's parent): params describe the stage, not the machine
+    env.tracking.log_params(run_id, relative_paths(flatten_params(dict(subset)), Path(env.checkpoint_root).parent))
     return run_id
 
 

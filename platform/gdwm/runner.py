@@ -75,6 +75,7 @@ from gdwm.progress import Execution, LaunchProgress, ProgressActor, Reporter
 from gdwm.simcluster import SimCluster, SimConfig
 from gdwm.term import NORMAL, QUIET, console, err_console
 from gdwm.tracking import AliveExcept, RunGuard, Sink, TrackingClient, open_tracking, process_owner
+from gdwm.tracking.params import flatten_params, relative_paths
 from gdwm.zoo.registry import metric_tags
 
 __all__ = ["PlanError", "RunError", "launch", "run_pipeline"]
@@ -299,7 +300,7 @@ class Layout:
         if run_id is None:
             tags |= {"gdwm.pipeline": self.pipeline}
             run_id = tracking.create_run(f"run-{self.pipeline}-{tags['gdwm.run_key'][:8]}", tags, None)
-            tracking.log_params(run_id, OmegaConf.to_container(cfg, resolve=True))
+            tracking.log_params(run_id, config_params(cfg))
         return run_id
 
     def _row_tags(self, row: Row) -> dict[str, str]:
@@ -314,7 +315,7 @@ class Layout:
             tracking.set_tags(run_id, tags)  # an edited row keeps its run; its index may move
             return run_id
         run_id = tracking.create_run(f"{self.sweep.name}/{row.label}", tags, parent)
-        tracking.log_params(run_id, OmegaConf.to_container(cfg, resolve=True))
+        tracking.log_params(run_id, config_params(cfg) | factor_params(row))
         return run_id
 
     def _trial_run(self, tracking: TrackingClient, row: Row, t: Trial) -> str:
@@ -326,8 +327,21 @@ class Layout:
             return run_id
         name = f"{self.sweep.name}/{t.name}" if self.sweep else f"seed-{t.seed}"
         run_id = tracking.create_run(name, tags, row.run_id)
-        tracking.log_params(run_id, OmegaConf.to_container(t.cfg, resolve=True))
+        tracking.log_params(run_id, config_params(t.cfg) | (factor_params(row) if self.sweep else {}))
         return run_id
+
+
+FACTOR_PARAM = "factor."
+"""A row's factors are params ``factor.<name>`` (MLflow's compare view plots params) and tags ``gdwm.factor.<name>``."""
+
+
+def factor_params(row: Row) -> dict[str, str]:
+    return {f"{FACTOR_PARAM}{k}": str(v) for k, v in row.factors.items()}
+
+
+def config_params(cfg: DictConfig) -> dict[str, str]:
+    """A config as a run's params: flattened, paths relative to the workdir (``gdwm.tracking.relative_paths``)."""
+    return relative_paths(flatten_params(OmegaConf.to_container(cfg, resolve=True)), cfg.workdir)
 
 
 def launch_key(pipe_name: str, trials: list[Trial]) -> str:
@@ -380,8 +394,12 @@ def report_evaluation(
     ``gdwm.samples.<stage>``, ``gdwm.scorer.<stage>``, ``gdwm.strata.<stage>``: what ``gdwm compare`` resamples)
     onto the trial's run."""
     metrics = evaluation_metrics(pipe, results)
-    if metrics:
-        tracking.log_metrics(run_id, metrics)
+    values = {k: v for k, v in metrics.items() if not k.startswith(COUNT)}
+    if values:
+        tracking.log_metrics(run_id, values)
+    counts = {f"gdwm.{k}": f"{v:g}" for k, v in metrics.items() if k.startswith(COUNT)}
+    if counts:  # how many samples were answered or skipped: a fact about the run, not a score to sort or plot
+        tracking.set_tags(run_id, counts)
     for name, r in results.items():
         if pipe.stages[name].evaluation and r.path:
             for table in sorted(Path(r.path).glob("*.parquet")):
@@ -392,6 +410,10 @@ def report_evaluation(
     if tags:
         tracking.set_tags(run_id, tags)
     return metrics
+
+
+COUNT = "count/"
+"""Evaluation values that are counts (``count/answered``): tags ``gdwm.count/<name>`` of the trial run, not metrics."""
 
 
 def aggregate(per_seed: list[dict[str, float]]) -> dict[str, float]:
@@ -405,6 +427,19 @@ def aggregate(per_seed: list[dict[str, float]]) -> dict[str, float]:
         out[f"n/{m}"] = float(len(values))
         if len(values) > 1:
             out[f"std/{m}"] = statistics.stdev(values)
+    return out
+
+
+def row_metrics(agg: Mapping[str, float]) -> dict[str, float]:
+    """A row's aggregate as its run's metrics: the mean as ``<metric>``, the spread over seeds as ``<metric>/std``
+    (beside ``<metric>/ci_low`` and ``<metric>/ci_high``, which ``gdwm compare`` logs); the count of seeds is a tag
+    ``gdwm.n.<metric>``, not a metric."""
+    out = {}
+    for m, v in agg.items():
+        if m.startswith("std/"):
+            out[f"{m.removeprefix('std/')}/std"] = v
+        elif not m.startswith("n/"):
+            out[m] = v
     return out
 
 
@@ -697,7 +732,9 @@ def _finish_row(tracking: TrackingClient, layout: Layout, row: Row, results: lis
         return
     agg = aggregate([r.metrics for r in results if r.ok])
     if agg:
-        tracking.log_metrics(row.run_id, agg)
+        tracking.log_metrics(row.run_id, row_metrics(agg))
+        tracking.set_tags(row.run_id, {f"gdwm.n.{m.removeprefix('n/')}": f"{v:g}" for m, v in agg.items()
+                                       if m.startswith("n/")})  # fmt: skip
     if layout.sweep is not None:
         tracking.end_run(row.run_id, "FINISHED" if any(r.ok for r in results) else "FAILED")
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from gdwm.board import resampling_progress
 from gdwm.compare.layout import CompareArgs, Format, LayoutConfig
 from gdwm.compare.render import to_csv, to_latex, to_markdown, to_rich
 from gdwm.compare.runs import SelectionError, select, training_curves
@@ -56,7 +57,10 @@ def compare(cfg: DictConfig) -> int:
     with tempfile.TemporaryDirectory(prefix="gdwm-compare-") as tmp:  # the tables are read into memory
         for problem in load_samples(backend, sel.rows, Path(tmp)):
             err_console.print(f"gdwm compare: warning: no per-sample statistics for {problem}", markup=False)
-    table = build_table(sel.rows, layout, stats)
+    with resampling_progress("gdwm compare"):
+        table = build_table(sel.rows, layout, stats)
+    if sel.sweep_run_id:
+        _log_statistics(backend, table, sel.sweep_run_id)
     if not any(table.value(i, c.metric) is not None for i in range(len(table.rows)) for c in table.columns):
         logged = sorted({m for r in sel.rows for t in r.trials for m in t.metrics})
         err_console.print(
@@ -85,6 +89,23 @@ def compare(cfg: DictConfig) -> int:
             backend.log_artifact(sel.sweep_run_id, str(path), f"compare/{layout.name}")
             console.print(f"  logged to sweep run {sel.sweep_run_id} as compare/{layout.name}/{path.name}")
     return 0
+
+
+def _log_statistics(backend: TrackingBackend, table, sweep_run_id: str) -> None:
+    """Each row's statistics as metrics of its run (``<metric>/std``, ``<metric>/ci_low``, ``<metric>/ci_high``:
+    MLflow's compare view can plot and sort them) and the table, in Markdown, as the sweep run's description."""
+    for i, row in enumerate(table.rows):
+        stats = {}
+        for c in table.columns:
+            cell = table.cell(i, c.metric)
+            if cell is None:
+                continue
+            for name, v in (("std", cell.std), ("ci_low", cell.ci_low), ("ci_high", cell.ci_high)):
+                if v is not None and v == v:
+                    stats[f"{c.metric}/{name}"] = v
+        if stats and row.run_id:
+            backend.log_metrics(row.run_id, stats)
+    backend.set_tags(sweep_run_id, {"mlflow.note.content": to_markdown(table)})
 
 
 def _render(fmt: Format, table, base: int, backend: TrackingBackend, cfg: DictConfig, selector: str) -> str:

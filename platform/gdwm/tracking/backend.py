@@ -25,7 +25,6 @@ from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 from gdwm.config import sqlite_path
 from gdwm.errors import one_line
 from gdwm.redact import redact
-from gdwm.tracking.relocate import relocate_store
 from gdwm.tracking.owner import OWNER_TAG, RECONCILED_TAG, owner_is_alive, process_owner
 from gdwm.tracking.params import (
     MAX_METRICS_PER_BATCH,
@@ -35,6 +34,7 @@ from gdwm.tracking.params import (
     flatten_params,
     truncate,
 )
+from gdwm.tracking.relocate import relocate_store
 from gdwm.zoo import registry as zoo
 
 log = logging.getLogger(__name__)
