@@ -20,7 +20,6 @@ from pathlib import Path
 
 from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
-from rich.table import Table
 
 from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config, sqlite_path, ui_url
 from gdwm.errors import CommandError, one_line
@@ -90,33 +89,9 @@ def _say_failures(command: str, summary) -> None:
 
 
 def _status(cfg: DictConfig, _args: list[str]) -> int:
-    from gdwm.tracking import TrackingBackend
+    from gdwm.status import status
 
-    uri = cfg.tracking.uri
-    if (db := sqlite_path(uri)) is not None and not Path(db).is_file():
-        # reading must not create a workdir and an empty store where nothing has run
-        err_console.print(f"no MLflow store at {db}: nothing has run in workdir "
-                          f"{cfg.workdir} (or tracking.uri points elsewhere)", markup=False)  # fmt: skip
-        return 1
-    backend = TrackingBackend(uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
-    runs = backend.search_runs("", max_results=30, order_by=["attributes.start_time DESC"])
-    t = Table(title=f"recent runs in {redact(cfg.tracking.uri)}", header_style="bold")
-    for col in ("run id", "name", "kind", "stage", "status", "started", "cache key"):
-        t.add_column(col)
-    for r in runs:
-        tags = r["tags"]
-        started = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(r["start_time"] / 1000)) if r["start_time"] else ""
-        t.add_row(
-            r["run_id"][:12],
-            r["name"] or "",
-            tags.get("gdwm.kind", ""),
-            tags.get("gdwm.stage", ""),
-            r["status"],
-            started,
-            tags.get("gdwm.cache_key", "")[:12],
-        )
-    console.print(t)
-    return 0
+    return status(cfg)
 
 
 def _sweep(cfg: DictConfig, args: list[str]) -> int:
@@ -247,7 +222,12 @@ COMMANDS: dict[str, dict[str, Command]] = {
         ),
     },
     "status": {
-        "": Command(_status, "list recent MLflow runs of the configured store"),
+        "": Command(
+            _status,
+            "sweeps (trials done / total, state, duration, best row, last regression verdict), runs and regressions "
+            "of the configured store: args.sweep=NAME (its rows), args.state=running|done|failed|killed, args.limit=N",
+            defaults=["args=status"],
+        ),
     },
     "sweep": {
         "": Command(

@@ -362,6 +362,9 @@ def _register_platform(cs: ConfigStore) -> None:
 
     cs.store(group="schema/args", name="zoo", node=ZooArgs)
     cs.store(group="schema/args", name="cache", node=CacheArgs)
+    from gdwm.status import StatusArgs
+
+    cs.store(group="schema/args", name="status", node=StatusArgs)
 
 
 @cache

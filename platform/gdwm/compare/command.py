@@ -8,7 +8,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from gdwm.board import resampling_progress
-from gdwm.compare.layout import CompareArgs, Format, LayoutConfig
+from gdwm.compare.layout import CompareArgs, Direction, Format, LayoutConfig
 from gdwm.compare.render import to_csv, to_latex, to_markdown, to_rich
 from gdwm.compare.runs import SelectionError, select, training_curves
 from gdwm.compare.samples import load_samples
@@ -105,7 +105,23 @@ def _log_statistics(backend: TrackingBackend, table, sweep_run_id: str) -> None:
                     stats[f"{c.metric}/{name}"] = v
         if stats and row.run_id:
             backend.log_metrics(row.run_id, stats)
-    backend.set_tags(sweep_run_id, {"mlflow.note.content": to_markdown(table)})
+    tags = {"mlflow.note.content": to_markdown(table)}
+    key = key_metric(table)
+    if key is not None:  # gdwm status shows the best row, gdwm zoo list each version's value
+        col = next(c for c in table.columns if c.metric == key)
+        live = {i: table.value(i, key) for i in range(len(table.rows)) if not table.rows[i].failed}
+        live = {i: v for i, v in live.items() if v is not None}
+        best = (max if col.direction is Direction.higher else min)(live, key=live.__getitem__)
+        tags |= {"gdwm.key_metric": key, "gdwm.best_row": table.rows[best].label, "gdwm.best_value": f"{live[best]}"}
+    backend.set_tags(sweep_run_id, tags)
+
+
+def key_metric(table) -> str | None:
+    """The table's key metric: its last column any live row has a value in (a paper table's last is its Avg.)."""
+    for c in reversed(table.columns):
+        if any(table.value(i, c.metric) is not None for i, r in enumerate(table.rows) if not r.failed):
+            return c.metric
+    return None
 
 
 def _render(fmt: Format, table, base: int, backend: TrackingBackend, cfg: DictConfig, selector: str) -> str:
