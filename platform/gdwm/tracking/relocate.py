@@ -58,7 +58,19 @@ def relocate_store(uri: str, artifact_location: str | None) -> int:
                         (target, len(prefix) + 1, prefix, _like(prefix) + "/%"),
                     )
                     changed += cur.rowcount
+    if changed:
+        _forget_artifact_repos()
     return changed
+
+
+def _forget_artifact_repos() -> None:
+    """MLflow keeps each run's artifact repository per process, keyed by run id: one this process opened before
+    the move still names the old root."""
+    try:
+        from mlflow.tracking._tracking_service import utils
+    except ImportError:  # a later MLflow without the cache
+        return
+    getattr(utils, "_artifact_repos_cache", {}).clear()
 
 
 def _like(text: str) -> str:
