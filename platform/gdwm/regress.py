@@ -177,8 +177,9 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
     if "--dry-run" in argv:
         return dry_run(cfg, bench, run_cfg, overrides)
     try:
-        summary = run_pipeline(run_cfg, overrides, seeds=bench.seeds, seeds_key="benchmark.seeds", live=False,
-                               verbosity=verbosity(argv))
+        summary = run_pipeline(
+            run_cfg, overrides, seeds=bench.seeds, seeds_key="benchmark.seeds", live=False, verbosity=verbosity(argv)
+        )
     except PlanError as e:
         raise RegressError(f"benchmark '{bench.name}': {e}") from e
     if not summary.ok:
