@@ -187,6 +187,10 @@ def check_address(address: str, timeout_s: float) -> None:
         ) from None
 
 
+AUTH_MODE_ENV = "RAY_AUTH_MODE"
+"""Ray sets it to ``token`` in the driver when it turns token authentication on (by default for a local Ray)."""
+
+
 class _TokenAuthNotice(logging.Filter):
     """Drops Ray's warning that token authentication is on, which it logs on every local start: on is what gdwm
     wants (and what Ray does by default), so a launch's log need not say it each time. Ray's warning that it is
@@ -651,9 +655,10 @@ def launch(
         try:
             with RunGuard(tracking.sink, parent), monitor:
                 c = lp.counts()
+                auth = "on" if os.environ.get(AUTH_MODE_ENV, "").lower() == "token" else "off"
                 monitor.emit(Event("launch", "running", launch=lp.launch, total=c["executions"],
-                                   message=f"{c['trials']} trial(s), {c['executions']} stage executions",
-                                   traceback=None))  # fmt: skip
+                                   message=f"{c['trials']} trial(s), {c['executions']} stage executions; "
+                                   f"Ray token authentication {auth}"))  # fmt: skip
                 tracking.set_tags(parent, {"gdwm.events": monitor.events_path})
                 summary.executions = execute(trials, tracking.sink, parent, on_trial, monitor,
                                              stage_tags=layout.stage_tags)  # fmt: skip
