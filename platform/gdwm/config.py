@@ -147,6 +147,18 @@ class CacheArgs:
     looked it up can still read it."""
 
 
+@dataclass
+class StatusArgs:
+    """``gdwm status [args.sweep=NAME] [args.state=STATE] [args.limit=N]``."""
+
+    sweep: str | None = None
+    """Show this sweep alone, with its rows."""
+    state: str | None = None
+    """Keep launches in this state: running, done, failed or killed."""
+    limit: int = 20
+    """At most this many launches per list, newest first."""
+
+
 class SceneErrorPolicy(StrEnum):
     fail = "fail"
     skip = "skip"
@@ -362,8 +374,6 @@ def _register_platform(cs: ConfigStore) -> None:
 
     cs.store(group="schema/args", name="zoo", node=ZooArgs)
     cs.store(group="schema/args", name="cache", node=CacheArgs)
-    from gdwm.status import StatusArgs
-
     cs.store(group="schema/args", name="status", node=StatusArgs)
 
 

@@ -9,13 +9,12 @@ driver keeps on its run (``gdwm.events``); a run whose driver died shows ``kille
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
-from gdwm.config import sqlite_path
+from gdwm.config import StatusArgs, sqlite_path
 from gdwm.errors import CommandError
 from gdwm.progress import duration
 from gdwm.redact import redact
@@ -23,18 +22,6 @@ from gdwm.term import console
 
 STATES = ("running", "done", "failed", "killed")
 _STATE = {"RUNNING": "running", "FINISHED": "done", "FAILED": "failed", "KILLED": "killed"}
-
-
-@dataclass
-class StatusArgs:
-    """``gdwm status [args.sweep=NAME] [args.state=STATE] [args.limit=N]``."""
-
-    sweep: str | None = None
-    """Show this sweep alone, with its rows."""
-    state: str | None = None
-    """Keep launches in this state: running, done, failed or killed."""
-    limit: int = 20
-    """At most this many launches per list, newest first."""
 
 
 def _when(ms: int | None) -> str:
