@@ -18,7 +18,6 @@ import sys
 import termios
 from pathlib import Path
 
-import mlflow
 import pyte
 import pytest
 
@@ -76,8 +75,7 @@ def test_factors_are_params_and_intervals_metrics(terminal_sweep):
     toy, _, _ = terminal_sweep
     exp = toy.client().get_experiment_by_name("gdwm")
     assert exp.tags["mlflow.experimentKind"] == "custom_model_development"  # MLflow's UI opens on the runs
-    rows = mlflow.search_runs([exp.experiment_id], "params.`factor.Rank` = '8' and tags.`gdwm.kind` = 'row'",
-                              output_format="list", tracking_uri=f"sqlite:///{toy.work}/mlflow.db")  # fmt: skip
+    rows = toy.client().search_runs([exp.experiment_id], "params.`factor.Rank` = '8' and tags.`gdwm.kind` = 'row'")
     (row,) = rows
     m = row.data.metrics
     assert m["nuinteract/plan_acc"] == 96.0
