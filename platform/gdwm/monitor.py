@@ -20,6 +20,9 @@ from gdwm.progress import Execution, LaunchProgress
 from gdwm.term import NORMAL, QUIET, console
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
+KEEPALIVE_S = 60.0
+"""The snapshot is rewritten at least this often while the launch runs, changed or not: its ``updated`` time tells a
+dashboard on another host that the driver is alive (``gdwm.ui.live``)."""
 
 
 class Monitor:
@@ -121,11 +124,11 @@ class Monitor:
 
     def snapshot(self, force: bool = False) -> None:
         """The launch's state onto its MLflow run (tags and ``progress/snapshot.json``), at most every
-        ``snapshot_s`` unless ``force``; nothing when unchanged."""
-        if self.tracking is None or self.run_id is None or not self._changed:
+        ``snapshot_s`` unless ``force``; when unchanged, only every ``KEEPALIVE_S``."""
+        if self.tracking is None or self.run_id is None:
             return
         now = time.monotonic()
-        if not force and now - self._snapshot_at < self.snapshot_s:
+        if not force and now - self._snapshot_at < (self.snapshot_s if self._changed else KEEPALIVE_S):
             return
         self._snapshot_at, self._changed = now, False
         snap = self.lp.snapshot(self.events_path)

@@ -23,8 +23,6 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import ray
-
 from gdwm.events import FINISHED, Event
 
 STEP_INTERVAL_S = 1.0
@@ -45,7 +43,16 @@ class EventQueue:
         return out
 
 
-ProgressActor = ray.remote(num_cpus=0)(EventQueue)
+def __getattr__(name: str) -> Any:
+    """``ProgressActor``, the Ray actor form of ``EventQueue``, made on first use: a reader of progress (``gdwm ui``)
+    imports this module without Ray."""
+    if name == "ProgressActor":
+        import ray
+
+        actor = ray.remote(num_cpus=0)(EventQueue)
+        globals()["ProgressActor"] = actor
+        return actor
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class Reporter:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -10,10 +12,10 @@ from omegaconf import DictConfig, OmegaConf
 from gdwm.board import resampling_progress
 from gdwm.compare.layout import CompareArgs, Direction, Format, LayoutConfig
 from gdwm.compare.render import to_csv, to_latex, to_markdown, to_rich
-from gdwm.compare.runs import SelectionError, select, training_curves
+from gdwm.compare.runs import Selection, SelectionError, select, training_curves
 from gdwm.compare.samples import load_samples
 from gdwm.compare.stats import Settings
-from gdwm.compare.table import build_table
+from gdwm.compare.table import Table, build_table
 from gdwm.config import sqlite_path, ui_url
 from gdwm.errors import CommandError
 from gdwm.term import console, err_console
@@ -37,37 +39,36 @@ def settings(args: CompareArgs) -> Settings:
     return Settings(args.alpha, args.confidence, args.resamples, args.stats_seed, args.bootstrap_method)
 
 
-def compare(cfg: DictConfig) -> int:
-    """Exit 0 with the outputs written; 1 (with a message naming the selector) when nothing matches."""
+@dataclass
+class Comparison:
+    """What ``gdwm compare`` shows: the selection, its table and the row the deltas are taken against."""
 
+    selection: Selection
+    table: Table
+    base: int
+
+
+def comparison(cfg: DictConfig, backend: TrackingBackend, warn: Callable[[str], None]) -> Comparison:
+    """Select the rows ``cfg.args`` names, read their samples and build the table: the one way every surface gets it
+    (this command, the dashboard's sweep page). Reads the store, writes nothing; ``warn`` gets each warning."""
     args: CompareArgs = OmegaConf.to_object(cfg.args)
     layout: LayoutConfig = OmegaConf.to_object(cfg.compare)
     try:
         stats = settings(args)
     except ValueError as e:
         raise CommandError(str(e)) from e
-    db = sqlite_path(cfg.tracking.uri)
-    if db is not None and not Path(db).is_file():
-        raise CommandError(f"no MLflow store at {db} (tracking.uri); run `gdwm run` first or set workdir=...")
-    backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
     try:
         sel = select(backend, args.sweep, args.runs, args.filter, args.factors)
     except SelectionError as e:
         raise CommandError(str(e)) from e
     with tempfile.TemporaryDirectory(prefix="gdwm-compare-") as tmp:  # the tables are read into memory
         for problem in load_samples(backend, sel.rows, Path(tmp)):
-            err_console.print(f"gdwm compare: warning: no per-sample statistics for {problem}", markup=False)
-    with resampling_progress("gdwm compare"):
-        table = build_table(sel.rows, layout, stats)
-    if sel.sweep_run_id:
-        _log_statistics(backend, table, sel.sweep_run_id)
+            warn(f"no per-sample statistics for {problem}")
+    table = build_table(sel.rows, layout, stats)
     if not any(table.value(i, c.metric) is not None for i in range(len(table.rows)) for c in table.columns):
         logged = sorted({m for r in sel.rows for t in r.trials for m in t.metrics})
-        err_console.print(
-            f"gdwm compare: warning: the rows logged no metric of layout '{layout.name}' (pick one with "
-            f"compare=NAME); they logged: {', '.join(logged) or 'nothing'}",
-            markup=False,
-        )
+        warn(f"the rows logged no metric of layout '{layout.name}' (pick one with compare=NAME); they logged: "
+             f"{', '.join(logged) or 'nothing'}")  # fmt: skip
     if args.baseline:
         try:
             base = table.index_of(args.baseline)
@@ -76,6 +77,27 @@ def compare(cfg: DictConfig) -> int:
             raise CommandError(f"args.baseline={args.baseline}: no such row (rows: {labels})") from None
     else:
         base = next((i for i, r in enumerate(table.rows) if not r.failed), 0)
+    return Comparison(sel, table, base)
+
+
+def compare(cfg: DictConfig) -> int:
+    """Exit 0 with the outputs written; 1 (with a message naming the selector) when nothing matches."""
+
+    args: CompareArgs = OmegaConf.to_object(cfg.args)
+    layout: LayoutConfig = OmegaConf.to_object(cfg.compare)
+    db = sqlite_path(cfg.tracking.uri)
+    if db is not None and not Path(db).is_file():
+        raise CommandError(f"no MLflow store at {db} (tracking.uri); run `gdwm run` first or set workdir=...")
+    backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
+
+    def warn(line: str) -> None:
+        err_console.print(f"gdwm compare: warning: {line}", markup=False)
+
+    with resampling_progress("gdwm compare"):
+        result = comparison(cfg, backend, warn)
+    sel, table, base = result.selection, result.table, result.base
+    if sel.sweep_run_id:
+        _log_statistics(backend, table, sel.sweep_run_id)
 
     if Format.terminal in args.formats:
         console.print(to_rich(table))
