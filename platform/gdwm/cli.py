@@ -6,7 +6,6 @@ Exit codes: 0 success, 1 a command failed (the message names what), 2 usage or c
 
 from __future__ import annotations
 
-import contextlib
 import os
 import signal
 import sys
@@ -21,8 +20,8 @@ from pathlib import Path
 from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 
-from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config, sqlite_path, ui_url
-from gdwm.errors import CommandError, one_line
+from gdwm.config import MAIN_GROUPS, ConfigError, group_options, load_config, sqlite_path
+from gdwm.errors import one_line
 from gdwm.redact import redact, redact_config
 from gdwm.term import console, err_console, verbosity
 
@@ -117,7 +116,7 @@ def _sweep(cfg: DictConfig, args: list[str]) -> int:
     report(cfg, load_sweep(cfg), args)
     work = f" workdir={cfg.workdir}" if cfg.workdir != "./gdwm-work" else ""
     console.print(f"registered variants: gdwm zoo list{work}")
-    console.print(f"MLflow UI: gdwm ui{work}  ->  {ui_url(cfg)}")
+    console.print(f"dashboard: gdwm ui{work}  ->  http://{cfg.ui.host}:{cfg.ui.port}/ (MLflow's UI: gdwm ui --mlflow)")
     for t in summary.trials:
         for stage, msg in list(t.failed.items())[:1]:
             err_console.print(f"gdwm sweep: trial '{t.trial.name}' failed at {stage}: {msg}", markup=False)
@@ -142,37 +141,11 @@ def _compare(cfg: DictConfig, _args: list[str]) -> int:
     return compare(cfg)
 
 
-def _ui(cfg: DictConfig, _args: list[str]) -> int:
-    """``mlflow server`` on the configured store in the foreground; Ctrl-C (or SIGTERM) stops it, exit 0."""
-    import subprocess
+def _ui(cfg: DictConfig, args: list[str]) -> int:
+    """gdwm's dashboard on the configured store (``gdwm.ui``) until Ctrl-C or SIGTERM (exit 0)."""
+    from gdwm.ui.serve import serve
 
-    cmd = [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", cfg.tracking.uri, "--workers", "1"]
-    cmd += ["--host", cfg.ui.host, "--port", str(cfg.ui.port)]
-    if cfg.tracking.artifact_location:  # experiments created in the UI keep their artifacts in the workdir too
-        cmd += ["--artifacts-destination", cfg.tracking.artifact_location]
-    # Its own process group: stopping it stops the web server workers it spawns too.
-    proc = subprocess.Popen(cmd, start_new_session=True)
-    console.print(f"MLflow UI for {cfg.tracking.uri}: {ui_url(cfg)}  (Ctrl-C stops it)")
-
-    def stop(_signum, _frame):
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, stop)
-    try:
-        rc = proc.wait()
-        if rc:
-            raise CommandError(f"mlflow server exited with status {rc} (command: {' '.join(cmd)})")
-        return 0
-    except KeyboardInterrupt:
-        with contextlib.suppress(ProcessLookupError):  # the group may be gone already
-            os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-        return 0
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    return serve(cfg, args)
 
 
 def _zoo(sub: str) -> Callable[[DictConfig, list[str]], int]:
@@ -262,7 +235,14 @@ COMMANDS: dict[str, dict[str, Command]] = {
         ),
     },
     "ui": {
-        "": Command(_ui, "serve the MLflow UI of the configured store (ui.host=127.0.0.1, ui.port=5000)"),
+        "": Command(
+            _ui,
+            "gdwm's dashboard of the configured store: launches, live sweeps (trials x stages, table, plots, "
+            "downloads), trials, regressions, the zoo (--port N, 0 = a free one; --host H, default 127.0.0.1; "
+            "--mlflow also serves MLflow's own UI on ui.mlflow_port)",
+            flags=("--mlflow",),
+            options=("--port", "--host"),
+        ),
     },
     "zoo": {
         sub: Command(_zoo(sub), text, defaults=["args=zoo"])

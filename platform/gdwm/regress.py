@@ -209,6 +209,7 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
         backend.log_metrics(run_id, now)
         backend.log_params(run_id, {"overrides": " ".join(bench.overrides + user), "targets": bench.targets})
         backend.log_text(run_id, markdown(rows), "regression.md")
+        backend.log_text(run_id, json.dumps(checks_json(bench, rows), indent=1), CHECKS)
         backend.log_text(run_id, json.dumps(stages, indent=1, sort_keys=True), PROVENANCE)
         backend.log_text(run_id, json.dumps(_entry_keys(summary.trials), indent=1, sort_keys=True), CACHE_KEYS)
         if flags:
@@ -392,6 +393,18 @@ def print_rows(bench: BenchmarkConfig, rows: list[Row], base_run: dict | None, s
         v = f"[{style[r.verdict]}]{r.verdict}[/{style[r.verdict]}]" if r.verdict in style else r.verdict
         t.add_row(r.metric, _fmt(r.baseline), _fmt(r.now), d, r.tolerance, v)
     console.print(t)
+
+
+CHECKS = "regression.json"
+"""Artifact of a regression run: every check as data (the dashboard draws the baseline and its band from it)."""
+
+
+def checks_json(bench: BenchmarkConfig, rows: list[Row]) -> list[dict]:
+    """Per check: metric, direction, baseline, now, tolerance (as printed), allowed (the band's half-width in the
+    metric's units; null when unknown) and verdict."""
+    direction = {c.name: Direction(c.direction).value for c in bench.metrics}
+    return [{"metric": r.metric, "direction": direction.get(r.metric, "higher"), "baseline": r.baseline, "now": r.now,
+             "tolerance": r.tolerance, "allowed": r.allowed, "verdict": r.verdict} for r in rows]  # fmt: skip
 
 
 def markdown(rows: list[Row]) -> str:

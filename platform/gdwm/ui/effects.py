@@ -82,7 +82,21 @@ def effects(table: Table, settings: Settings) -> list[dict]:
             if low is not None and (math.isnan(low) or math.isnan(high)):
                 low = high = None
                 how = "none"
-            out.append({"factor": factor, "from": ra.factors[factor], "to": rb.factors[factor], "row_from": ra.label,
-                        "row_to": rb.label, "metric": c.metric, "label": c.label, "direction": c.direction.value,
-                        "effect": effect, "low": low, "high": high, "test": how, "level": level})  # fmt: skip
+            out.append(
+                {
+                    "factor": factor,
+                    "from": ra.factors[factor],
+                    "to": rb.factors[factor],
+                    "row_from": ra.label,
+                    "row_to": rb.label,
+                    "metric": c.metric,
+                    "label": c.label,
+                    "direction": c.direction.value,
+                    "effect": effect,
+                    "low": low,
+                    "high": high,
+                    "test": how,
+                    "level": level,
+                }
+            )
     return out

@@ -63,11 +63,15 @@ def from_snapshot(snap: dict[str, Any], clock=time.time) -> LaunchProgress:
         for name in ("step", "steps", "loss", "done", "total", "cause", "traceback"):
             setattr(ex, name, c.get(name))
         eta = c.get("eta_s")
-        ex.estimate_s = 0.0 if state == "cached" else (
-            eta if state == "pending" else (c.get("duration_s", 0.0) + eta if eta is not None else None))  # fmt: skip
+        ex.estimate_s = (
+            0.0
+            if state == "cached"
+            else (eta if state == "pending" else (c.get("duration_s", 0.0) + eta if eta is not None else None))
+        )
         executions.append(ex)
-    lp = LaunchProgress(snap.get("kind", "sweep"), snap.get("name", ""), snap.get("launch", ""), trials, executions,
-                        clock)  # fmt: skip
+    lp = LaunchProgress(
+        snap.get("kind", "sweep"), snap.get("name", ""), snap.get("launch", ""), trials, executions, clock
+    )
     lp.started = snap.get("started", lp.started)
     if snap.get("state") != "running":
         lp.ended = lp.started + snap.get("elapsed_s", 0.0)
@@ -185,8 +189,15 @@ def grid_from_runs(sweep: dict, trials: list[dict], stage_runs: dict[str, dict])
             if stage == failed:
                 cause = tags.get("gdwm.error", "").strip().splitlines()
                 cells[stage] = {"state": "failed", "key": key, "cause": cause[0] if cause else ""}
-                failures.append({"stage": stage, "key": key, "trials": [trial_label(t, sweep)], "cause": cells[stage]
-                                 ["cause"], "traceback": None})  # fmt: skip
+                failures.append(
+                    {
+                        "stage": stage,
+                        "key": key,
+                        "trials": [trial_label(t, sweep)],
+                        "cause": cells[stage]["cause"],
+                        "traceback": None,
+                    }
+                )
             elif rid:
                 sr = stage_runs.get(rid, {})
                 before = (sr.get("start_time") or 0) < (sweep.get("start_time") or 0)
@@ -202,8 +213,14 @@ def grid_from_runs(sweep: dict, trials: list[dict], stage_runs: dict[str, dict])
         out[trial_label(t, sweep)] = {"state": state, "stages": cells}
     done = sum(d["state"] == "done" for d in out.values())
     fails = sum(d["state"] == "failed" for d in out.values())
-    return {"trials": out, "stages": stages, "failures": failures, "eta_s": None, "state": _status_state(sweep),
-            "counts": {"trials": len(out), "trials_done": done, "trials_failed": fails}}  # fmt: skip
+    return {
+        "trials": out,
+        "stages": stages,
+        "failures": failures,
+        "eta_s": None,
+        "state": _status_state(sweep),
+        "counts": {"trials": len(out), "trials_done": done, "trials_failed": fails},
+    }
 
 
 def trial_label(trial: dict, sweep: dict) -> str:

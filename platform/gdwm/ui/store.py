@@ -141,9 +141,14 @@ class Store:
         out: list[dict] = []
         token = None
         while len(out) < max_results:
-            page = self.client.search_runs([self.experiment_id], filter_string, ViewType.ACTIVE_ONLY,
-                                           max_results=min(1000, max_results - len(out)), order_by=order_by,
-                                           page_token=token)  # fmt: skip
+            page = self.client.search_runs(
+                [self.experiment_id],
+                filter_string,
+                ViewType.ACTIVE_ONLY,
+                max_results=min(1000, max_results - len(out)),
+                order_by=order_by,
+                page_token=token,
+            )
             out += [run_dict(r) for r in page]
             token = page.token
             if not token:
@@ -201,7 +206,15 @@ class Store:
             for alias, version in (model.aliases or {}).items():
                 aliases.setdefault(str(version), []).append(alias)
             for mv in self.client.search_model_versions(f"name = '{model.name}'", max_results=1000):
-                out.append({"name": mv.name, "version": int(mv.version), "aliases": sorted(aliases.get(str(mv.version), [])),
-                            "tags": dict(mv.tags), "run_id": mv.run_id, "created": mv.creation_timestamp,
-                            "source": mv.source})  # fmt: skip
+                out.append(
+                    {
+                        "name": mv.name,
+                        "version": int(mv.version),
+                        "aliases": sorted(aliases.get(str(mv.version), [])),
+                        "tags": dict(mv.tags),
+                        "run_id": mv.run_id,
+                        "created": mv.creation_timestamp,
+                        "source": mv.source,
+                    }
+                )
         return sorted(out, key=lambda v: (v["name"], -v["version"]))

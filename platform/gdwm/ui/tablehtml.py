@@ -63,13 +63,15 @@ def table_html(table: Table, key_metric: str | None, links: dict[str, str]) -> s
         lead_cells = _lead(table, i)
         href = links.get(r.run_id)
         label = f'<a href="{escape(href)}">{escape(lead_cells[0])}</a>' if href else escape(lead_cells[0])
-        tds = [f'<th class="pin-left" scope="row">{label}</th>']
+        tds = [f'<th class="pin-left" scope="row" title="{escape(lead_cells[0])}">{label}</th>']
         tds += [f'<td class="factor">{escape(x)}</td>' for x in lead_cells[1:]]
         for c in [*cols, *end]:
             mark = table.marks.get((i, c.metric), "")
             cls = "num pin-right" if c.metric == pinned else "num"
-            tds.append(f'<td class="{cls}" data-metric="{escape(c.metric)}" data-mark="{mark}">'
-                       f"{cell_html(table, i, c.metric)}</td>")  # fmt: skip
+            tds.append(
+                f'<td class="{cls}" data-metric="{escape(c.metric)}" data-mark="{mark}">'
+                f"{cell_html(table, i, c.metric)}</td>"
+            )
         if table.has_notes:
             tds.append(f'<td class="note">{escape(r.note)}</td>')
         body.append(f'<tr class="{"failed" if r.failed else "ok"}" data-row="{escape(r.label)}">{"".join(tds)}</tr>')

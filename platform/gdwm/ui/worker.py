@@ -20,7 +20,6 @@ import sys
 import time
 from typing import Any
 
-
 OUT = sys.stdout
 """The JSON lines go here; anything the code it calls prints goes to stderr instead."""
 
@@ -79,9 +78,19 @@ def run(job: dict[str, Any]) -> None:
         for c in table.columns:
             cell = table.cell(i, c.metric)
             if cell is not None:
-                cells.append({"row": i, "metric": c.metric, "mean": cell.mean, "std": cell.std, "n": cell.n,
-                              "ci_low": cell.ci_low, "ci_high": cell.ci_high, "text": table.text(i, c.metric),
-                              "mark": table.marks.get((i, c.metric), "")})  # fmt: skip
+                cells.append(
+                    {
+                        "row": i,
+                        "metric": c.metric,
+                        "mean": cell.mean,
+                        "std": cell.std,
+                        "n": cell.n,
+                        "ci_low": cell.ci_low,
+                        "ci_high": cell.ci_high,
+                        "text": table.text(i, c.metric),
+                        "mark": table.marks.get((i, c.metric), ""),
+                    }
+                )
     emit(
         "table",
         title=table.title,
@@ -94,10 +103,14 @@ def run(job: dict[str, Any]) -> None:
         best_row=table.rows[best].label if best is not None else None,
         best_value=live.get(best) if best is not None else None,
         base=result.base,
-        rows=[{"label": r.label, "run_id": r.run_id, "failed": r.failed, "factors": r.factors, "note": r.note}
-              for r in table.rows],  # fmt: skip
-        columns=[{"metric": c.metric, "header": c.header, "group": c.group, "direction": c.direction.value,
-                  "label": c.label} for c in table.columns],  # fmt: skip
+        rows=[
+            {"label": r.label, "run_id": r.run_id, "failed": r.failed, "factors": r.factors, "note": r.note}
+            for r in table.rows
+        ],
+        columns=[
+            {"metric": c.metric, "header": c.header, "group": c.group, "direction": c.direction.value, "label": c.label}
+            for c in table.columns
+        ],
         factors=table.factors,
         cells=cells,
         caption=table.caption,
@@ -112,16 +125,48 @@ def run(job: dict[str, Any]) -> None:
         from gdwm.compare.runs import training_curves
 
         curves = {r.run_id: training_curves(backend, r) for r in table.rows}
-        html = html_report(table, result.base, curves, job.get("mlflow_url") or "", result.selection.selector,
-                           cfg.tracking.uri)  # fmt: skip
+        html = html_report(
+            table, result.base, curves, job.get("mlflow_url") or "", result.selection.selector, cfg.tracking.uri
+        )
         emit("report", html=html)
+
+
+def why(job: dict[str, Any]) -> None:
+    """For each stage a trial ran (``job["stages"]``: stage, its run id), why it ran rather than coming from the cache,
+    in the dry run's words (``gdwm.plan.why``): its entries compared with the closest earlier entry of the stage."""
+    from types import SimpleNamespace
+
+    from gdwm.cache import Cache
+    from gdwm.plan import why as plan_why
+
+    cache = Cache(job["cache"])
+    out: dict[str, str] = {}
+    for stage, run_id in job["stages"]:
+        entries = cache.entries(stage)
+        mine = [m for m in entries if m.run_id == run_id]
+        if not mine:
+            out[stage] = "no cache entry of its run (removed, or written elsewhere)"
+            continue
+        reasons = []
+        for m in mine:
+            earlier = [e for e in entries if e.scene == m.scene and e.created_at < m.created_at and e.key != m.key]
+            if not earlier:
+                reasons.append(
+                    "first computation (no earlier entry of the stage" + (f" for {m.scene})" if m.scene else ")")
+                )
+                continue
+            sd = SimpleNamespace(name=stage, version=m.version)
+            env = SimpleNamespace(data_fingerprint=m.data_fingerprint, code={stage: m.code} if m.code else {}, reuse={})
+            reasons.append(plan_why(earlier, sd, m.config, m.upstream, m.identity, env))
+        out[stage] = "; ".join(dict.fromkeys(reasons))
+    emit("why", why=out)
 
 
 def main() -> int:
     job = json.loads(sys.stdin.read())
     sys.stdout = sys.stderr
     try:
-        run(job)
+        why(job) if job.get("kind") == "why" else run(job)
     except Exception as e:  # the dashboard shows this line where the table would be
         from gdwm.errors import one_line
         from gdwm.redact import redact
