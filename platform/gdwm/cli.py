@@ -143,9 +143,14 @@ def _compare(cfg: DictConfig, _args: list[str]) -> int:
 
 def _ui(cfg: DictConfig, args: list[str]) -> int:
     """gdwm's dashboard on the configured store (``gdwm.ui``) until Ctrl-C or SIGTERM (exit 0)."""
+    from gdwm.errors import CommandError
     from gdwm.ui.serve import serve
 
-    return serve(cfg, args)
+    try:
+        return serve(cfg, args)
+    except CommandError as e:  # a busy port, a store that cannot be read: the one line says which
+        err_console.print(f"gdwm ui: {e}", markup=False)
+        return 1
 
 
 def _zoo(sub: str) -> Callable[[DictConfig, list[str]], int]:

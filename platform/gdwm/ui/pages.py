@@ -538,6 +538,8 @@ def zoo(ctx: Context) -> list[dict]:
         out.append(
             {
                 **v,
+                "created_str": when(v["created"]),
+                "experiment_id": ctx.store.experiment_id,
                 "variant": tags.get("gdwm.variant", ""),
                 "stage": tags.get("gdwm.stage", ""),
                 "cache_key": tags.get("gdwm.cache_key", ""),
