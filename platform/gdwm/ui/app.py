@@ -57,7 +57,7 @@ def plotly_js() -> Path:
 
 def _env() -> Environment:
     env = Environment(loader=FileSystemLoader(HERE / "templates"), autoescape=select_autoescape(["html"]))
-    env.filters["duration"] = lambda s: duration(s) if s is not None else ""
+    env.filters["duration"] = lambda s: duration(s) if isinstance(s, int | float) else ""
     env.filters["short"] = lambda s, n=12: (s or "")[:n]
     env.globals["STATE_CLASS"] = STATE_CLASS
     return env

@@ -101,7 +101,7 @@ def test_trials_done_rise_without_a_reload_then_the_table(live):
 def test_a_failing_trial_shows_its_one_line_cause_and_blocked_downstream(live, shots):
     page = live["page"]
     causes = page.eval_on_selector_all("#failures .cause", "els => els.map(e => e.innerText)")
-    assert causes and all(c.startswith("stage 'lora' failed: ValueError: rank must be >= 0") for c in causes)
+    assert causes and all(c == "stage 'lora' failed: ValueError: stage.toy_lora.rank must be >= 0, got -1" for c in causes)
     assert all("\n" not in c for c in causes)
     rows = page.eval_on_selector_all(
         "#trial-grid tbody tr",
