@@ -32,8 +32,19 @@ import psutil
 
 from benchmarks.common import Result
 
-NUINTERACT = ["rdp_bleu", "rdp_rouge_l", "rdp_cider", "vg2d_map", "vg2d_f1", "vg2d_miou", "vg3d_pr", "vg3d_map",
-              "vg3d_f1", "plan_acc", "avg"]  # fmt: skip
+NUINTERACT = [
+    "rdp_bleu",
+    "rdp_rouge_l",
+    "rdp_cider",
+    "vg2d_map",
+    "vg2d_f1",
+    "vg2d_miou",
+    "vg3d_pr",
+    "vg3d_map",
+    "vg3d_f1",
+    "plan_acc",
+    "avg",
+]
 
 
 def _free_port() -> int:
@@ -121,9 +132,21 @@ def gdwm_ui(workdir: Path, wait_table: bool) -> dict:
 def mlflow_ui(workdir: Path) -> dict:
     port = _free_port()
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", f"sqlite:///{workdir}/mlflow.db",
-                             "--port", str(port)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)  # fmt: skip
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "mlflow",
+            "ui",
+            "--backend-store-uri",
+            f"sqlite:///{workdir}/mlflow.db",
+            "--port",
+            str(port),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     try:
         while _get(f"http://127.0.0.1:{port}/", timeout=5)[0] != 200:
             if proc.poll() is not None or time.perf_counter() - t0 > 600:
@@ -164,22 +187,36 @@ def write_sweep(workdir: Path, rows: int, seeds: int, params: int = 260, steps: 
         tags = {**tags, **({"mlflow.parentRunId": parent} if parent else {})}
         return client.create_run(exp, run_name=name, tags=tags).info.run_id
 
-    def batch(run_id: str, metrics: dict | None = None, params: dict | None = None, tags: dict | None = None,
-              step: int = 0) -> None:  # fmt: skip
+    def batch(
+        run_id: str, metrics: dict | None = None, params: dict | None = None, tags: dict | None = None, step: int = 0
+    ) -> None:
         ms = [Metric(k, v, now, step) for k, v in (metrics or {}).items()]
         ps = [Param(k, v) for k, v in (params or {}).items()]
         for i in range(0, max(len(ps), 1), 100):
-            client.log_batch(run_id, metrics=ms if i == 0 else [], params=ps[i : i + 100],
-                             tags=[RunTag(k, v) for k, v in (tags or {}).items()] if i == 0 else [])  # fmt: skip
+            client.log_batch(
+                run_id,
+                metrics=ms if i == 0 else [],
+                params=ps[i : i + 100],
+                tags=[RunTag(k, v) for k, v in (tags or {}).items()] if i == 0 else [],
+            )
 
     sweep = run("sweep-bench", {"gdwm.kind": "sweep", "gdwm.sweep": "bench"})
     config = {f"stage.s{j}.p{k}": str(k) for j in range(params // 10) for k in range(10)}
-    shared = {s: run(f"{s}-shared", {"gdwm.kind": "stage", "gdwm.stage": s, "gdwm.sweep": "bench",
-                                     "gdwm.cache_key": f"{s}key"}, sweep) for s in ("reconstruct", "distill")}  # fmt: skip
+    shared = {
+        s: run(
+            f"{s}-shared",
+            {"gdwm.kind": "stage", "gdwm.stage": s, "gdwm.sweep": "bench", "gdwm.cache_key": f"{s}key"},
+            sweep,
+        )
+        for s in ("reconstruct", "distill")
+    }
     tokenizer = {}
     for seed in range(seeds):
-        tokenizer[seed] = run(f"tokenizer-{seed}", {"gdwm.kind": "stage", "gdwm.stage": "tokenizer", "gdwm.sweep":
-                                                   "bench", "gdwm.cache_key": f"tok{seed}"}, sweep)  # fmt: skip
+        tokenizer[seed] = run(
+            f"tokenizer-{seed}",
+            {"gdwm.kind": "stage", "gdwm.stage": "tokenizer", "gdwm.sweep": "bench", "gdwm.cache_key": f"tok{seed}"},
+            sweep,
+        )
     for rid in [*shared.values(), *tokenizer.values()]:
         client.set_terminated(rid)
     snap_trials = {}
@@ -197,33 +234,82 @@ def write_sweep(workdir: Path, rows: int, seeds: int, params: int = 260, steps: 
         batch(row, params=config)
         for seed in range(seeds):
             name = f"{label}, seed {seed}"
-            lora = run(f"lora-{r}-{seed}", {"gdwm.kind": "stage", "gdwm.stage": "lora", "gdwm.sweep": "bench",
-                                            "gdwm.cache_key": f"lora{r}{seed}"}, sweep)  # fmt: skip
+            lora = run(
+                f"lora-{r}-{seed}",
+                {"gdwm.kind": "stage", "gdwm.stage": "lora", "gdwm.sweep": "bench", "gdwm.cache_key": f"lora{r}{seed}"},
+                sweep,
+            )
             ms = [Metric("loss", 2.0 / (1 + s) + rng.random() * 0.1, now + s, s) for s in range(steps)]
             client.log_batch(lora, metrics=ms)
-            ev = run(f"evaluate_qa-{r}-{seed}", {"gdwm.kind": "stage", "gdwm.stage": "evaluate_qa", "gdwm.sweep":
-                                                "bench", "gdwm.cache_key": f"ev{r}{seed}"}, sweep)  # fmt: skip
+            ev = run(
+                f"evaluate_qa-{r}-{seed}",
+                {
+                    "gdwm.kind": "stage",
+                    "gdwm.stage": "evaluate_qa",
+                    "gdwm.sweep": "bench",
+                    "gdwm.cache_key": f"ev{r}{seed}",
+                },
+                sweep,
+            )
             for rid in (lora, ev):
                 client.set_terminated(rid)
-            links = {"reconstruct": shared["reconstruct"], "distill": shared["distill"], "tokenizer": tokenizer[seed],
-                     "lora": lora, "evaluate_qa": ev}  # fmt: skip
+            links = {
+                "reconstruct": shared["reconstruct"],
+                "distill": shared["distill"],
+                "tokenizer": tokenizer[seed],
+                "lora": lora,
+                "evaluate_qa": ev,
+            }
             trial = run(f"bench/{name}", {**common, "gdwm.kind": "trial", "gdwm.seed": str(seed)}, row)
             metrics = {f"nuinteract/{m}": 30 + 10 * rng.random() + r % 7 for m in NUINTERACT}
-            batch(trial, metrics=metrics, params=config,
-                  tags={f"gdwm.stage_run.{s}": v for s, v in links.items()} |
-                  {f"gdwm.stage_key.{s}": f"{s}{r}{seed}" for s in links})  # fmt: skip
+            batch(
+                trial,
+                metrics=metrics,
+                params=config,
+                tags={f"gdwm.stage_run.{s}": v for s, v in links.items()}
+                | {f"gdwm.stage_key.{s}": f"{s}{r}{seed}" for s in links},
+            )
             client.set_terminated(trial)
-            snap_trials[name] = {"state": "done", "stages": {s: {"state": "done" if s in ("lora", "evaluate_qa") or
-                                 (s == "tokenizer" and r == 0) or (s in shared and r == 0 and seed == 0) else "shared",
-                                 "key": f"{s}{r}{seed}", "duration_s": 12.5} for s in links}}  # fmt: skip
+            snap_trials[name] = {
+                "state": "done",
+                "stages": {
+                    s: {
+                        "state": "done"
+                        if s in ("lora", "evaluate_qa")
+                        or (s == "tokenizer" and r == 0)
+                        or (s in shared and r == 0 and seed == 0)
+                        else "shared",
+                        "key": f"{s}{r}{seed}",
+                        "duration_s": 12.5,
+                    }
+                    for s in links
+                },
+            }
         client.set_terminated(row)
     n = rows * seeds
-    snap = {"format": 1, "launch": "sweep-bench", "kind": "sweep", "name": "bench", "state": "done",
-            "started": now / 1000, "updated": now / 1000 + 60, "elapsed_s": 60.0, "eta_s": None,
-            "counts": {"executions": 3 * n, "executions_finished": 3 * n, "trials": n, "trials_done": n,
-                       "trials_failed": 0}, "summary": "", "events": None,
-            "stages": ["reconstruct", "distill", "tokenizer", "lora", "evaluate_qa"], "trials": snap_trials,
-            "failures": []}  # fmt: skip
+    snap = {
+        "format": 1,
+        "launch": "sweep-bench",
+        "kind": "sweep",
+        "name": "bench",
+        "state": "done",
+        "started": now / 1000,
+        "updated": now / 1000 + 60,
+        "elapsed_s": 60.0,
+        "eta_s": None,
+        "counts": {
+            "executions": 3 * n,
+            "executions_finished": 3 * n,
+            "trials": n,
+            "trials_done": n,
+            "trials_failed": 0,
+        },
+        "summary": "",
+        "events": None,
+        "stages": ["reconstruct", "distill", "tokenizer", "lora", "evaluate_qa"],
+        "trials": snap_trials,
+        "failures": [],
+    }
     client.log_text(sweep, json.dumps(snap), "progress/snapshot.json")
     client.log_text(sweep, "name: bench\nlayout: nuinteract\n", "sweep.yaml")
     batch(sweep, tags={"gdwm.trials_done": str(n), "gdwm.trials_failed": "0", "gdwm.trials_total": str(n)})
@@ -266,7 +352,7 @@ def run(quick: bool = False) -> list[Result]:
             m_times.append(mlflow_ui(demo)["seconds"])
         m_rss = mlflow_ui(demo)["rss"]
         g_med, m_med = statistics.median(g_times), statistics.median(m_times)
-        detail = f"{what}; load average {load:.1f} on {os.cpu_count()} CPUs; runs {['%.1f' % x for x in g_times]}"
+        detail = f"{what}; load average {load:.1f} on {os.cpu_count()} CPUs; runs {[f'{x:.1f}' for x in g_times]}"
         out.append(Result("ui", "gdwm ui: command -> deep link answered 200", g_med, "s", 3.0, detail=detail))
         out.append(
             Result(
@@ -274,11 +360,19 @@ def run(quick: bool = False) -> list[Result]:
                 "mlflow ui: command -> / answered 200",
                 m_med,
                 "s",
-                detail=f"same store; runs {['%.1f' % x for x in m_times]}; ratio {m_med / g_med:.1f}x",
+                detail=f"same store; runs {[f'{x:.1f}' for x in m_times]}; ratio {m_med / g_med:.1f}x",
             )
         )
-        out.append(Result("ui", "gdwm ui RSS, whole server (table computed, worker gone)", first["rss_steady"], "MB",
-                          300.0, detail=f"at its URL {first['rss_at_url']:.0f} MB"))  # fmt: skip
+        out.append(
+            Result(
+                "ui",
+                "gdwm ui RSS, whole server (table computed, worker gone)",
+                first["rss_steady"],
+                "MB",
+                300.0,
+                detail=f"at its URL {first['rss_at_url']:.0f} MB",
+            )
+        )
         out.append(
             Result(
                 "ui",
@@ -309,7 +403,7 @@ def run(quick: bool = False) -> list[Result]:
                 page,
                 "s",
                 1.0,
-                detail=f"median of 5 GETs {['%.2f' % x for x in ts]}; store written in {made:.0f} s",
+                detail=f"median of 5 GETs {[f'{x:.2f}' for x in ts]}; store written in {made:.0f} s",
             )
         )
         out.append(Result("ui", f"{n}-trial sweep live fragments (what a page polls)", live, "s", 1.0))

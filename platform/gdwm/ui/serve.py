@@ -40,8 +40,10 @@ def bind(host: str, port: int) -> socket.socket:
     except OSError as e:
         sock.close()
         if e.errno == errno.EADDRINUSE:
-            raise CommandError(f"port {port} on {host} is in use (ui.port={port}); pick another with --port N, or "
-                               "--port 0 for a free one") from None  # fmt: skip
+            raise CommandError(
+                f"port {port} on {host} is in use (ui.port={port}); pick another with --port N, or "
+                "--port 0 for a free one"
+            ) from None
         raise CommandError(f"cannot listen on {host}:{port} (ui.host, ui.port): {e.strerror or e}") from None
     sock.listen(128)
     sock.set_inheritable(False)
@@ -107,8 +109,7 @@ def _announce(server, base: str, deep: str, what: str, mlflow: tuple[subprocess.
         ok = False
         err_console.print(f"gdwm ui: {url} did not answer ({e}); every launch: {base}/", markup=False)
     if ok:
-        console.print(f"gdwm ui: {url}  ({what}; every launch: {base}/; Ctrl-C stops it)", markup=False,
-                      soft_wrap=True)  # fmt: skip
+        console.print(f"gdwm ui: {url}  ({what}; every launch: {base}/; Ctrl-C stops it)", markup=False, soft_wrap=True)
     if mlflow is not None:
         proc, murl = mlflow
         deadline = time.monotonic() + 300
@@ -122,8 +123,9 @@ def _announce(server, base: str, deep: str, what: str, mlflow: tuple[subprocess.
                 time.sleep(0.5)
         if proc.poll() is not None:
             tail = (proc.stderr.read().decode(errors="replace") if proc.stderr else "").strip().splitlines()
-            err_console.print(f"gdwm ui: MLflow's UI exited {proc.returncode}: {tail[-1] if tail else ''}",
-                              markup=False)  # fmt: skip
+            err_console.print(
+                f"gdwm ui: MLflow's UI exited {proc.returncode}: {tail[-1] if tail else ''}", markup=False
+            )
 
 
 def serve(cfg: DictConfig, args: list[str]) -> int:
@@ -165,8 +167,13 @@ def serve(cfg: DictConfig, args: list[str]) -> int:
         mlflow = start_mlflow(cfg, host, int(cfg.ui.mlflow_port))
         mlflow_url = cfg.ui.url or mlflow[1]
     workdirs = [p for p in {store.workdir, Path(cfg.workdir).resolve()} if p is not None and p.is_dir()]
-    overrides = [a for a in args if "=" in a and not a.startswith("--")
-                 and a.split("=", 1)[0].lstrip("+~").split(".")[0] in ("workdir", "tracking")]  # fmt: skip
+    overrides = [
+        a
+        for a in args
+        if "=" in a
+        and not a.startswith("--")
+        and a.split("=", 1)[0].lstrip("+~").split(".")[0] in ("workdir", "tracking")
+    ]
     if sqlite_path(uri) is None:
         overrides.append(f"tracking.uri={uri}")  # the worker reads the same store
     ctx = Context(store, workdirs, mlflow_url, Tables(), Whys(str(cfg.cache.uri)), float(cfg.ui.poll_s), overrides)

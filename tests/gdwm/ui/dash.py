@@ -39,8 +39,13 @@ class Dashboard:
 @contextmanager
 def dashboard(*overrides: str, timeout_s: float = 300, **extra_env: str) -> Iterator[Dashboard]:
     """``gdwm ui --port 0 OVERRIDES`` until the block ends; fails with its output if it exits first."""
-    proc = subprocess.Popen([sys.executable, "-m", "gdwm", "ui", "--port", "0", *overrides], env=env(**extra_env),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gdwm", "ui", "--port", "0", *overrides],
+        env=env(**extra_env),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     lines: list[str] = []
     found = threading.Event()
 

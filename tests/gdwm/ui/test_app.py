@@ -49,10 +49,23 @@ def shots(tmp_path_factory) -> Path:
 def live(tmp_path_factory, shots):
     """The toy_grid sweep watched live from the dashboard: what the page showed, in order, and the open page."""
     toy = Toy(tmp_path_factory.mktemp("grid"))
-    args = [sys.executable, "-m", "gdwm", "sweep", "sweep=toy_grid", f"workdir={toy.work}", f"data.root={toy.data}",
-            "run.snapshot_s=1"]  # fmt: skip
-    sweep = subprocess.Popen(args, env=env(GDWM_TEST_DIR=str(toy.root), GDWM_TEST_BLOCK="reconstruct"),
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    args = [
+        sys.executable,
+        "-m",
+        "gdwm",
+        "sweep",
+        "sweep=toy_grid",
+        f"workdir={toy.work}",
+        f"data.root={toy.data}",
+        "run.snapshot_s=1",
+    ]
+    sweep = subprocess.Popen(
+        args,
+        env=env(GDWM_TEST_DIR=str(toy.root), GDWM_TEST_BLOCK="reconstruct"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     seen: dict = {"done": []}
     try:
         _wait_file(toy.root / "blocked-reconstruct", sweep)
@@ -101,7 +114,9 @@ def test_trials_done_rise_without_a_reload_then_the_table(live):
 def test_a_failing_trial_shows_its_one_line_cause_and_blocked_downstream(live, shots):
     page = live["page"]
     causes = page.eval_on_selector_all("#failures .cause", "els => els.map(e => e.innerText)")
-    assert causes and all(c == "stage 'lora' failed: ValueError: stage.toy_lora.rank must be >= 0, got -1" for c in causes)
+    assert causes and all(
+        c == "stage 'lora' failed: ValueError: stage.toy_lora.rank must be >= 0, got -1" for c in causes
+    )
     assert all("\n" not in c for c in causes)
     rows = page.eval_on_selector_all(
         "#trial-grid tbody tr",
@@ -184,11 +199,19 @@ def test_home_lists_the_sweep_newest_first(live, shots):
 
 def test_regressions_show_each_check_over_three_runs_with_baseline_and_band(live, shots):
     toy = live["toy"]
-    base = [sys.executable, "-m", "gdwm", "regress", "benchmark=toy_nightly", f"workdir={toy.work}",
-            f"data.root={toy.data}"]  # fmt: skip
+    base = [
+        sys.executable,
+        "-m",
+        "gdwm",
+        "regress",
+        "benchmark=toy_nightly",
+        f"workdir={toy.work}",
+        f"data.root={toy.data}",
+    ]
     for extra in (["--set-baseline"], [], ["stage.toy_lora.rank=2"]):
-        r = subprocess.run([*base, *extra], env=env(GDWM_TEST_DIR=str(toy.root)), capture_output=True, text=True,
-                           timeout=600)  # fmt: skip
+        r = subprocess.run(
+            [*base, *extra], env=env(GDWM_TEST_DIR=str(toy.root)), capture_output=True, text=True, timeout=600
+        )
         assert r.returncode in (0, 1), r.stderr[-3000:]
     page = live["page"]
     page.goto(live["dash"].base + "/regressions")

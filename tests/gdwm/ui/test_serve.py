@@ -21,8 +21,9 @@ from tests.gdwm.ui.dash import browser, dashboard, env
 
 
 def _ui(*args: str, **extra: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "gdwm", "ui", *args], env=env(**extra), capture_output=True,
-                          text=True, timeout=300)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "gdwm", "ui", *args], env=env(**extra), capture_output=True, text=True, timeout=300
+    )
 
 
 def _get(url: str) -> tuple[int, str]:
@@ -88,8 +89,13 @@ def test_stale_run_and_a_store_that_goes_away(store):
 
 def _snapshot() -> dict:
     """A finished two-trial launch's snapshot, as the driver writes it."""
-    lp = LaunchProgress("sweep", "remote", "sweep-remote-x", {"a": [("train", "k1")], "b": [("train", "k2")]},
-                        [Execution("train", "k1", ["a"]), Execution("train", "k2", ["b"])])  # fmt: skip
+    lp = LaunchProgress(
+        "sweep",
+        "remote",
+        "sweep-remote-x",
+        {"a": [("train", "k1")], "b": [("train", "k2")]},
+        [Execution("train", "k1", ["a"]), Execution("train", "k2", ["b"])],
+    )
     for key, trial in (("k1", "a"), ("k2", "b")):
         lp.feed(Event("stage", "running", stage="train", key=key))
         lp.feed(Event("stage", "done", stage="train", key=key))
