@@ -1,4 +1,5 @@
-"""``gdwm ui``: the MLflow UI on the configured store, on 127.0.0.1, until stopped (SIGTERM or Ctrl-C: exit 0)."""
+"""``gdwm ui --mlflow``: the dashboard and MLflow's own UI on the configured store, on 127.0.0.1, until stopped
+(SIGTERM or Ctrl-C: exit 0, both servers gone). The dashboard itself: ``tests/gdwm/ui/``."""
 
 import json
 import signal
@@ -34,9 +35,19 @@ def test_ui_serves_the_store_and_stops_cleanly(tmp_path):
     backend = TrackingBackend(f"sqlite:///{tmp_path}/mlflow.db", "gdwm", str(tmp_path / "mlartifacts"))
     run_id = backend.create_run("run-x", {"gdwm.kind": "run"})
     backend.end_run(run_id)
-    port = _free_port()
+    port, dash = _free_port(), _free_port()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "gdwm", "ui", f"workdir={tmp_path}", f"ui.port={port}"],
+        [
+            sys.executable,
+            "-m",
+            "gdwm",
+            "ui",
+            "--mlflow",
+            f"workdir={tmp_path}",
+            f"ui.mlflow_port={port}",
+            "--port",
+            str(dash),
+        ],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -62,5 +73,5 @@ def test_ui_serves_the_store_and_stops_cleanly(tmp_path):
         proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 0, out
-    assert f"MLflow UI for sqlite:///{tmp_path}/mlflow.db: http://127.0.0.1:{port}" in out
-    assert _refused(port)  # the server and its workers are gone with it
+    assert f"MLflow UI: http://127.0.0.1:{port}" in out and f"gdwm ui: http://127.0.0.1:{dash}/" in out
+    assert _refused(port) and _refused(dash)  # both servers and MLflow's workers are gone with it
