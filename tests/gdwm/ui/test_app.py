@@ -91,7 +91,11 @@ def live(tmp_path_factory, shots):
                 page.wait_for_timeout(500)
             seen["states"] = states
             seen["sweep_rc"] = sweep.returncode
-            page.wait_for_selector("#results", timeout=600_000)  # the final table, computed by compare's code
+            # the final table, computed by compare's code once every trial has finished (not one of the tables of
+            # the trials finished so far, which the page shows "updating" meanwhile)
+            page.wait_for_function(
+                "document.querySelector('#results') && !document.querySelector('#table-status')", timeout=900_000
+            )
             seen["reloaded"] = not page.evaluate("window.__notReloaded === true")
             page.screenshot(path=shots / "live-2-table.png", full_page=True)
             yield {"toy": toy, "dash": dash, "page": page, "seen": seen}
@@ -129,7 +133,7 @@ def test_a_failing_trial_shows_its_one_line_cause_and_blocked_downstream(live, s
         assert cells["lora"] == "failed" and cells["evaluate_qa"] == "blocked"
     good = {label: cells for label, cells in rows if "rank=3" in label}
     assert all(c["evaluate_qa"] == "done" for c in good.values()) and len(good) == 2
-    page.locator("#failures").screenshot(path=shots / "failure-cause.png")
+    page.locator("#progress").screenshot(path=shots / "failure-cause.png")
 
 
 def _expected(row: dict[str, str], metric: str, failed: bool) -> str:
@@ -146,12 +150,12 @@ def _expected(row: dict[str, str], metric: str, failed: bool) -> str:
     return text
 
 
-def test_the_table_equals_gdwm_compares_csv_cell_for_cell(live, shots):
-    """The CSV ``gdwm sweep`` wrote at its end with ``gdwm compare``: every value, interval and mark."""
-    text = (live["toy"].work / "reports" / "toy_grid" / "nuinteract.csv").read_text()
+def _check_table(page, csv_path: Path) -> int:
+    """The page's table against ``gdwm compare``'s CSV: every value with its interval, and every mark; returns the
+    number of marks seen."""
+    text = csv_path.read_text()
     rows = list(csv.DictReader(io.StringIO("".join(ln for ln in text.splitlines(True) if not ln.startswith("#")))))
     metrics = [k for k in rows[0] if "/" in k and k.rsplit("/", 1)[1] not in ("std", "n", "ci_low", "ci_high", "mark")]
-    page = live["page"]
     shown = page.eval_on_selector_all(
         "#results tbody tr",
         "trs => trs.map(tr => [tr.dataset.row, Object.fromEntries([...tr.querySelectorAll('td.num')]"
@@ -162,17 +166,39 @@ def test_the_table_equals_gdwm_compares_csv_cell_for_cell(live, shots):
     for (label, cells), row in zip(shown, rows, strict=True):
         failed = row["status"] == "FAILED"
         for m in metrics:
-            if m not in cells:  # a column no row has a value in is left out of both
-                assert not any(r[m] for r in rows), (label, m)
-                continue
+            assert m in cells, (label, m)
             assert cells[m] == [_expected(row, m, failed), row[f"{m}/mark"]], (label, m)
             compared += 1
-    assert compared >= 2 * len(rows)
-    assert any(mark for _, cells in shown for _, mark in cells.values())  # some mark was earned and shown
+    assert compared == len(rows) * len(metrics) and any(row[m] for row in rows for m in metrics)
     legend = page.inner_text("#legend")
     caption = [ln[2:] for ln in text.splitlines() if ln.startswith("# ")]
     assert caption and all(line in legend for line in caption)
-    page.locator("#results-section").screenshot(path=shots / "table.png")
+    return sum(bool(mark) for _, cells in shown for _, mark in cells.values())
+
+
+def _current_table(page, url: str) -> None:
+    page.goto(url)
+    page.wait_for_function(
+        "document.querySelector('#results') && !document.querySelector('#table-status')", timeout=900_000
+    )
+
+
+def test_the_table_equals_gdwm_compares_csv_cell_for_cell(live, shots):
+    """The CSVs ``gdwm sweep`` wrote at its end with ``gdwm compare``: toy_grid's (two failed rows, two equal live
+    ones: no mark), then toy_ablation's (three ranks: marks), swept into the same store."""
+    page, toy = live["page"], live["toy"]
+    assert _check_table(page, toy.work / "reports" / "toy_grid" / "nuinteract.csv") == 0
+    page.locator("#results-section").screenshot(path=shots / "table-grid.png")
+    r = subprocess.run([sys.executable, "-m", "gdwm", "sweep", "sweep=toy_ablation", f"workdir={toy.work}",
+                        f"data.root={toy.data}"], env=env(GDWM_TEST_DIR=str(toy.root)), capture_output=True,
+                       text=True, timeout=900)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    page.goto(live["dash"].base + "/")
+    href = page.get_attribute("#list-sweep a:text('toy_ablation')", "href")
+    _current_table(page, live["dash"].base + href)
+    assert _check_table(page, toy.work / "reports" / "toy_ablation" / "nuinteract.csv") >= 1
+    page.locator("#results-section").screenshot(path=shots / "table-ablation.png")
+    _current_table(page, live["dash"].url)  # back to toy_grid for the tests after
 
 
 def test_downloads_are_compares_outputs(live):
@@ -189,12 +215,39 @@ def test_home_lists_the_sweep_newest_first(live, shots):
     page = live["page"]
     page.goto(live["dash"].base + "/")
     rows = page.eval_on_selector_all("#list-sweep tbody tr", "trs => trs.map(tr => tr.innerText)")
-    assert len(rows) == 1 and rows[0].startswith("toy_grid") and f"2/{TRIALS} (2 failed)" in rows[0]
+    assert [r.split("\t")[0] for r in rows] == ["toy_ablation", "toy_grid"]  # newest first
+    assert f"2/{TRIALS} (2 failed)" in rows[1] and "3/3" in rows[0]
     page.fill("input[name=q]", "nothing-like-it")
     page.click("button[type=submit]")
     assert page.eval_on_selector_all("#list-sweep tbody tr", "trs => trs.length") == 0
     page.goto(live["dash"].base + "/")
     page.screenshot(path=shots / "home.png", full_page=True)
+
+
+def test_a_trial_page_says_how_and_why_each_stage_ran(live, shots):
+    page = live["page"]
+    page.goto(live["dash"].base + "/")
+    page.goto(live["dash"].url)
+    page.click("#trial-grid a:text('long, stage.toy_lora.rank=3')")
+    page.wait_for_selector("#stages")
+    assert page.inner_text("#trial-name") == "long, stage.toy_lora.rank=3"
+    how = dict(page.eval_on_selector_all("#stages tbody tr", "trs => trs.map(tr => [tr.dataset.stage,"
+                                         " tr.querySelector('.badge').innerText])"))  # fmt: skip
+    assert how == {"reconstruct": "shared", "distill": "shared", "tokenizer": "done", "lora": "done",
+                   "evaluate_qa": "done"}  # fmt: skip
+    # why it ran, in the dry run's words, from the cache's manifests (a worker process answers)
+    page.wait_for_function("[...document.querySelectorAll('td.why')].every(td => td.innerText.trim() !== '…')",
+                           timeout=300_000)  # fmt: skip
+    why = dict(page.eval_on_selector_all("td.why", "tds => tds.map(td => [td.dataset.stage, td.innerText])"))
+    # against the short row's tokenizer where that entry came first (the two run side by side)
+    assert why["tokenizer"] in (
+        "config: stage.toy_tokenizer.steps 2 -> 4",
+        "first computation (no earlier entry of the stage)",
+    )
+    assert all(why[s] and "no cache entry" not in why[s] for s in ("tokenizer", "lora", "evaluate_qa"))
+    diff = page.eval_on_selector_all("#diff tbody tr", "trs => trs.map(tr => tr.cells[0].innerText)")
+    assert "stage.toy_tokenizer.steps" in diff
+    page.screenshot(path=shots / "trial.png", full_page=True)
 
 
 def test_regressions_show_each_check_over_three_runs_with_baseline_and_band(live, shots):

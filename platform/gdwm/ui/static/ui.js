@@ -67,13 +67,14 @@ const gdwm = (() => {
     let effectsReady = false;
 
     let stagesShown = "";
+    let picked = false; // the user chose a stage: keep it when the list grows
     function stages(list) {
       if (list.join("|") === stagesShown) return;
       stagesShown = list.join("|");
       const sel = document.getElementById("curve-stage");
       const had = sel.value;
       sel.innerHTML = list.map((s) => `<option>${s}</option>`).join("");
-      if (list.includes(had)) sel.value = had;
+      if (picked && list.includes(had)) sel.value = had;
       if (list.length) curves();
     }
 
@@ -96,7 +97,10 @@ const gdwm = (() => {
       const d = await getJson(cfg.curves + "?stage=" + encodeURIComponent(stage));
       if (d) draw(document.getElementById("chart-curves"), d.figure);
     }
-    document.getElementById("curve-stage").addEventListener("change", curves);
+    document.getElementById("curve-stage").addEventListener("change", () => {
+      picked = true;
+      curves();
+    });
 
     async function tick() {
       const d = await getJson(cfg.live);
