@@ -261,7 +261,7 @@ def test_regressions_show_each_check_over_three_runs_with_baseline_and_band(live
         f"workdir={toy.work}",
         f"data.root={toy.data}",
     ]
-    for extra in (["--set-baseline"], [], ["stage.toy_lora.rank=2"]):
+    for extra in (["--set-baseline"], [], ["experiment=toy", "stage.toy_lora.rank=1"]):  # the last one regresses
         r = subprocess.run(
             [*base, *extra], env=env(GDWM_TEST_DIR=str(toy.root)), capture_output=True, text=True, timeout=600
         )
@@ -279,8 +279,12 @@ def test_regressions_show_each_check_over_three_runs_with_baseline_and_band(live
         assert points == 3, metric  # three runs
         assert shapes == 2, metric  # the baseline line and its tolerance band
         assert ringed == 1, metric  # the baseline run
-    verdicts = page.eval_on_selector_all("#verdicts-toy_nightly tbody tr", "trs => trs.length")
-    assert verdicts == 3
+    verdicts = page.eval_on_selector_all("#verdicts-toy_nightly tbody tr", "trs => trs.map(tr => tr.className)")
+    assert verdicts == ["fail", "", ""]  # newest first: the planted regression stands out
+    crosses = page.eval_on_selector_all(
+        ".chart.trend", "els => els.map(e => e.data[0].marker.symbol.filter(s => s === 'x').length)"
+    )
+    assert max(crosses) == 1  # its failed check, a red cross on the newest point
     figure = json.loads(page.get_attribute(".chart.trend", "data-figure"))
     assert figure["layout"]["shapes"][1]["type"] == "rect"
     page.screenshot(path=shots / "regressions.png", full_page=True)
