@@ -284,7 +284,7 @@ def trend(metric: str, points: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     if last is not None:
         b, allowed = last["baseline"], last.get("allowed")
         fig.add_hline(
-            y=b, line={"dash": "dash", "color": "#666"}, annotation_text="baseline", annotation_position="top left"
+            y=b, line={"dash": "dash", "color": "#666"}, annotation_text="baseline", annotation_position="top right"
         )
         if allowed is not None:
             lo, hi = (b - allowed, b) if last.get("direction") == "higher" else (b, b + allowed)
@@ -295,7 +295,7 @@ def trend(metric: str, points: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                 opacity=0.18,
                 line_width=0,
                 annotation_text=f"tolerance {last.get('tolerance', '')}",
-                annotation_position="bottom left",
+                annotation_position="bottom right",
             )
     fig.update_layout(**LAYOUT, height=300, title={"text": metric}, showlegend=False)
     return _json(fig)

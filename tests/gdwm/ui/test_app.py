@@ -197,6 +197,14 @@ def test_the_table_equals_gdwm_compares_csv_cell_for_cell(live, shots):
     href = page.get_attribute("#list-sweep a:text('toy_ablation')", "href")
     _current_table(page, live["dash"].base + href)
     assert _check_table(page, toy.work / "reports" / "toy_ablation" / "nuinteract.csv") >= 1
+    # at 1280 px the row labels stay at the left edge and the key metric at the right edge, scrolled or not
+    for scroll in ("0", "1e6"):
+        page.evaluate(f"document.querySelector('.tablewrap').scrollLeft = {scroll}")
+        edges = page.evaluate(
+            "() => [...document.querySelectorAll('#results tbody tr')].map(tr => [tr.querySelector('.pin-left')"
+            ".getBoundingClientRect().left, tr.querySelector('td.pin-right').getBoundingClientRect().right])"
+        )
+        assert all(0 <= left < 40 and 1200 < right <= 1280 for left, right in edges), (scroll, edges)
     page.locator("#results-section").screenshot(path=shots / "table-ablation.png")
     _current_table(page, live["dash"].url)  # back to toy_grid for the tests after
 
