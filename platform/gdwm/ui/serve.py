@@ -66,8 +66,8 @@ def _own_auth() -> dict[str, str]:
     return {"Authorization": "Basic " + base64.b64encode(f"{user}:{password}".encode()).decode()}
 
 
-def start_mlflow(cfg: DictConfig, host: str, port: int) -> tuple[subprocess.Popen, str]:
-    """MLflow's own UI on the store, in its own process group (stopping it stops its workers)."""
+def mlflow_command(cfg: DictConfig, host: str, port: int) -> tuple[list[str], str]:
+    """``mlflow server`` on the store and its URL (port 0: a free one, picked now)."""
     if port == 0:
         with socket.socket() as s:
             s.bind((host, 0))
@@ -76,8 +76,7 @@ def start_mlflow(cfg: DictConfig, host: str, port: int) -> tuple[subprocess.Pope
     cmd += ["--host", host, "--port", str(port)]
     if cfg.tracking.artifact_location:
         cmd += ["--artifacts-destination", cfg.tracking.artifact_location]
-    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    return proc, f"http://{_shown_host(host)}:{port}"
+    return cmd, f"http://{_shown_host(host)}:{port}"
 
 
 def _stop(proc: subprocess.Popen | None) -> None:
@@ -91,12 +90,34 @@ def _stop(proc: subprocess.Popen | None) -> None:
             os.killpg(proc.pid, signal.SIGKILL)
 
 
-def _announce(server, base: str, deep: str, what: str, mlflow: tuple[subprocess.Popen, str] | None) -> None:
-    """Print the URL once the deep-linked page answers; with ``--mlflow``, MLflow's URL once its UI answers."""
+def _announce(
+    server,
+    base: str,
+    deep: str,
+    what: str,
+    mlflow: tuple[list[str], str] | None,
+    answered: threading.Event,
+    started: list[subprocess.Popen],
+) -> None:
+    """Print the URL once the deep-linked page answers; with ``--mlflow``, then start MLflow's UI (in its own process
+    group: stopping it stops its workers; after the first page, whose start it would slow down) and print its URL once
+    it answers."""
     while not server.started and not server.should_exit:
         time.sleep(0.01)
     if server.should_exit:
         return
+    try:
+        _first_page(base, deep, what)
+    finally:
+        answered.set()
+    if mlflow is not None and not server.should_exit:
+        cmd, url = mlflow
+        proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        started.append(proc)
+        _mlflow_ready(server, (proc, url))
+
+
+def _first_page(base: str, deep: str, what: str) -> None:
     url = base + deep
     try:
         req = urllib.request.Request(url, headers=_own_auth())
@@ -110,22 +131,23 @@ def _announce(server, base: str, deep: str, what: str, mlflow: tuple[subprocess.
         err_console.print(f"gdwm ui: {url} did not answer ({e}); every launch: {base}/", markup=False)
     if ok:
         console.print(f"gdwm ui: {url}  ({what}; every launch: {base}/; Ctrl-C stops it)", markup=False, soft_wrap=True)
-    if mlflow is not None:
-        proc, murl = mlflow
-        deadline = time.monotonic() + 300
-        while time.monotonic() < deadline and proc.poll() is None and not server.should_exit:
-            try:
-                with urllib.request.urlopen(f"{murl}/health", timeout=5) as r:
-                    if r.status == 200:
-                        console.print(f"MLflow UI: {murl}", markup=False)
-                        return
-            except OSError:
-                time.sleep(0.5)
-        if proc.poll() is not None:
-            tail = (proc.stderr.read().decode(errors="replace") if proc.stderr else "").strip().splitlines()
-            err_console.print(
-                f"gdwm ui: MLflow's UI exited {proc.returncode}: {tail[-1] if tail else ''}", markup=False
-            )
+
+
+def _mlflow_ready(server, mlflow: tuple[subprocess.Popen, str]) -> None:
+    """MLflow's URL once its UI answers (it starts in tens of seconds), or why it exited."""
+    proc, murl = mlflow
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None and not server.should_exit:
+        try:
+            with urllib.request.urlopen(f"{murl}/health", timeout=5) as r:
+                if r.status == 200:
+                    console.print(f"MLflow UI: {murl}", markup=False)
+                    return
+        except OSError:
+            time.sleep(0.5)
+    if proc.poll() is not None:
+        tail = (proc.stderr.read().decode(errors="replace") if proc.stderr else "").strip().splitlines()
+        err_console.print(f"gdwm ui: MLflow's UI exited {proc.returncode}: {tail[-1] if tail else ''}", markup=False)
 
 
 def serve(cfg: DictConfig, args: list[str]) -> int:
@@ -164,8 +186,9 @@ def serve(cfg: DictConfig, args: list[str]) -> int:
     mlflow = None
     mlflow_url = cfg.ui.url or (ui_url(cfg) if uri.startswith(("http://", "https://")) else None)
     if "--mlflow" in args and not uri.startswith(("http://", "https://")):
-        mlflow = start_mlflow(cfg, host, int(cfg.ui.mlflow_port))
+        mlflow = mlflow_command(cfg, host, int(cfg.ui.mlflow_port))
         mlflow_url = cfg.ui.url or mlflow[1]
+    started: list[subprocess.Popen] = []
     workdirs = [p for p in {store.workdir, Path(cfg.workdir).resolve()} if p is not None and p.is_dir()]
     overrides = [
         a
@@ -176,18 +199,22 @@ def serve(cfg: DictConfig, args: list[str]) -> int:
     ]
     if sqlite_path(uri) is None:
         overrides.append(f"tracking.uri={uri}")  # the worker reads the same store
-    ctx = Context(store, workdirs, mlflow_url, Tables(), Whys(str(cfg.cache.uri)), float(cfg.ui.poll_s), overrides)
+    answered = threading.Event()
+    ctx = Context(
+        store, workdirs, mlflow_url, Tables(hold=answered), Whys(str(cfg.cache.uri)), float(cfg.ui.poll_s), overrides
+    )
     app = create_app(ctx, auth)
     config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="off", timeout_graceful_shutdown=3)
     server = Server(config)
     base = f"http://{_shown_host(host)}:{port}"
     deep = f"/sweeps/{newest['run_id']}" if newest else "/"
     what = f"sweep {newest['tags'].get('gdwm.sweep', newest['name'])}, the newest" if newest else "no sweep yet"
-    threading.Thread(target=_announce, args=(server, base, deep, what, mlflow), daemon=True).start()
+    threading.Thread(target=_announce, args=(server, base, deep, what, mlflow, answered, started), daemon=True).start()
     try:
         server.run(sockets=[sock])
     finally:
         ctx.tables.close()
-        _stop(mlflow[0] if mlflow else None)
+        for proc in started:
+            _stop(proc)
         sock.close()
     return 0

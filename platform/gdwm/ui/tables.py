@@ -27,7 +27,7 @@ class Entry:
     state: str = "queued"
     """queued, computing, ready, failed."""
     progress: str = ""
-    """What the worker is doing (``bootstrap evaluate_qa: 312/1000 resamples``)."""
+    """What the worker is doing (``bootstrap <stage>: 312/1000 resamples``)."""
     table: dict[str, Any] | None = None
     """The worker's ``table`` event (html, downloads, cells, key metric, ...) of ``table_fingerprint``."""
     table_fingerprint: tuple = ()
@@ -55,9 +55,12 @@ class Job:
 class Tables:
     """The dashboard's tables, by sweep run id; ``want`` asks for one, ``get`` reads what is there."""
 
-    def __init__(self, env: dict[str, str] | None = None):
+    def __init__(self, env: dict[str, str] | None = None, hold: threading.Event | None = None):
         self.entries: dict[str, Entry] = {}
         self.env = env
+        self.hold = hold
+        """Jobs start once it is set (``gdwm ui`` sets it when its first page has answered: a worker starting
+        meanwhile would slow that page down)."""
         self._queue: queue.Queue[str] = queue.Queue()
         self._pending: dict[str, Job] = {}
         self._lock = threading.Lock()
@@ -86,6 +89,8 @@ class Tables:
     def _loop(self) -> None:
         while True:
             sweep_id = self._queue.get()
+            if self.hold is not None:
+                self.hold.wait()
             with self._lock:
                 job = self._pending.pop(sweep_id, None)
             if job is not None:
