@@ -133,7 +133,7 @@ def train_dual(ctx: StageContext, mcfg: DiffusionConfig, cfg: DiffusionStageConf
                             sample_steps=mcfg.sample_steps)  # fmt: skip
         model.save(init)
     loop_cfg = {"init_dir": str(init), "data": str(data_path), "train": asdict(cfg), "seed": ctx.seed}
-    result = ctx.train(train_loop, loop_cfg)
+    result = ctx.train(train_loop, loop_cfg, total_steps=cfg.steps)
     model = RGBDDual.from_pretrained(init)
     model.load_state_dict(result.state["model"], strict=False)
     model.eval()

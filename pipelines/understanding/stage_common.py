@@ -79,6 +79,7 @@ def run_training(
             "train": cfg,
             "seed": ctx.seed,
         },
+        total_steps=cfg.steps,
     )
     model = load_world_model(init_dir)
     if isinstance(cfg, LoraStageConfig):

@@ -6,7 +6,6 @@ Exit codes: 0 success, 1 a command failed (the message names what), 2 usage or c
 
 from __future__ import annotations
 
-import contextlib
 import os
 import signal
 import sys
@@ -20,20 +19,11 @@ from pathlib import Path
 
 from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
-from rich.table import Table
 
-from gdwm.config import (
-    MAIN_GROUPS,
-    ConfigError,
-    drop_mlflow_litter,
-    group_options,
-    load_config,
-    sqlite_path,
-    ui_url,
-)
-from gdwm.errors import CommandError, one_line
+from gdwm.config import MAIN_GROUPS, ConfigError, drop_mlflow_litter, group_options, load_config, sqlite_path
+from gdwm.errors import one_line
 from gdwm.redact import redact, redact_config
-from gdwm.term import console, err_console
+from gdwm.term import console, err_console, verbosity
 
 
 @dataclass
@@ -73,48 +63,35 @@ def _run(cfg: DictConfig, args: list[str]) -> int:
     try:
         # `gdwm run` has no command defaults: its config is composed from the user's overrides alone, and so is each
         # seed's (seeds=[...])
-        summary = run_pipeline(cfg, [a for a in args if not a.startswith("--")], dry_run="--dry-run" in args)
+        summary = run_pipeline(cfg, [a for a in args if not a.startswith("--")], dry_run="--dry-run" in args,
+                               verbosity=verbosity(args))  # fmt: skip
     except (DagError, PlanError) as e:
         err_console.print(f"gdwm run: {'pipeline error: ' if isinstance(e, DagError) else ''}{e}", markup=False)
         return 2
     except RunError as e:
         err_console.print(f"gdwm run: {e}", markup=False)
         return 1
-    for t in summary.trials:
-        for msg in t.failed.values():
-            err_console.print(f"gdwm run: {msg}", markup=False)
+    _say_failures("gdwm run", summary)
     return 0 if summary.ok else 1
 
 
-def _status(cfg: DictConfig, _args: list[str]) -> int:
-    from gdwm.tracking import TrackingBackend
+def _say_failures(command: str, summary) -> None:
+    """One line per failed stage execution (its cause names the traceback file), and how many stages it blocked."""
+    seen: set[str] = set()
+    for t in summary.trials:
+        for msg in t.failed.values():
+            if msg not in seen:
+                seen.add(msg)
+                blocked = len({s for x in summary.trials for s in x.blocked})
+                where = f"trial '{t.trial.name}': " if len(summary.trials) > 1 else ""
+                err_console.print(f"{command}: {where}{msg}" + (f"; {blocked} stage(s) downstream blocked" if
+                                  blocked and len(summary.trials) == 1 else ""), markup=False)  # fmt: skip
 
-    uri = cfg.tracking.uri
-    if (db := sqlite_path(uri)) is not None and not Path(db).is_file():
-        # reading must not create a workdir and an empty store where nothing has run
-        err_console.print(f"no MLflow store at {db}: nothing has run in workdir "
-                          f"{cfg.workdir} (or tracking.uri points elsewhere)", markup=False)  # fmt: skip
-        return 1
-    backend = TrackingBackend(uri, cfg.tracking.experiment, cfg.tracking.artifact_location,
-                              lock_timeout_s=cfg.tracking.lock_timeout_s)  # fmt: skip
-    runs = backend.search_runs("", max_results=30, order_by=["attributes.start_time DESC"])
-    t = Table(title=f"recent runs in {redact(cfg.tracking.uri)}", header_style="bold")
-    for col in ("run id", "name", "kind", "stage", "status", "started", "cache key"):
-        t.add_column(col)
-    for r in runs:
-        tags = r["tags"]
-        started = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(r["start_time"] / 1000)) if r["start_time"] else ""
-        t.add_row(
-            r["run_id"][:12],
-            r["name"] or "",
-            tags.get("gdwm.kind", ""),
-            tags.get("gdwm.stage", ""),
-            r["status"],
-            started,
-            tags.get("gdwm.cache_key", "")[:12],
-        )
-    console.print(t)
-    return 0
+
+def _status(cfg: DictConfig, _args: list[str]) -> int:
+    from gdwm.status import status
+
+    return status(cfg)
 
 
 def _sweep(cfg: DictConfig, args: list[str]) -> int:
@@ -140,7 +117,7 @@ def _sweep(cfg: DictConfig, args: list[str]) -> int:
     report(cfg, load_sweep(cfg), args)
     work = f" workdir={cfg.workdir}" if cfg.workdir != "./gdwm-work" else ""
     console.print(f"registered variants: gdwm zoo list{work}")
-    console.print(f"MLflow UI: gdwm ui{work}  ->  {ui_url(cfg)}")
+    console.print(f"dashboard: gdwm ui{work}  ->  http://{cfg.ui.host}:{cfg.ui.port}/ (MLflow's UI: gdwm ui --mlflow)")
     for t in summary.trials:
         for stage, msg in list(t.failed.items())[:1]:
             err_console.print(f"gdwm sweep: trial '{t.trial.name}' failed at {stage}: {msg}", markup=False)
@@ -165,40 +142,16 @@ def _compare(cfg: DictConfig, _args: list[str]) -> int:
     return compare(cfg)
 
 
-def _ui(cfg: DictConfig, _args: list[str]) -> int:
-    """``mlflow server`` on the configured store in the foreground; Ctrl-C (or SIGTERM) stops it, exit 0."""
-    import subprocess
+def _ui(cfg: DictConfig, args: list[str]) -> int:
+    """gdwm's dashboard on the configured store (``gdwm.ui``) until Ctrl-C or SIGTERM (exit 0)."""
+    from gdwm.errors import CommandError
+    from gdwm.ui.serve import serve
 
-    from gdwm.ports import check_port_free
-
-    check_port_free(cfg.ui.host, int(cfg.ui.port))  # another server's URL must never be printed as ours
-    cmd = [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", cfg.tracking.uri, "--workers", "1"]
-    cmd += ["--host", cfg.ui.host, "--port", str(cfg.ui.port)]
-    if cfg.tracking.artifact_location:  # experiments created in the UI keep their artifacts in the workdir too
-        cmd += ["--artifacts-destination", cfg.tracking.artifact_location]
-    # Its own process group: stopping it stops the web server workers it spawns too.
-    proc = subprocess.Popen(cmd, start_new_session=True)
-    console.print(f"MLflow UI for {cfg.tracking.uri}: {ui_url(cfg)}  (Ctrl-C stops it)")
-
-    def stop(_signum, _frame):
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, stop)
     try:
-        rc = proc.wait()
-        if rc:
-            raise CommandError(f"mlflow server exited with status {rc} (command: {' '.join(cmd)})")
-        return 0
-    except KeyboardInterrupt:
-        with contextlib.suppress(ProcessLookupError):  # the group may be gone already
-            os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-        return 0
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+        return serve(cfg, args)
+    except CommandError as e:  # a busy port, a store that cannot be read: the one line says which
+        err_console.print(f"gdwm ui: {e}", markup=False)
+        return 1
 
 
 def _zoo(sub: str) -> Callable[[DictConfig, list[str]], int]:
@@ -243,20 +196,26 @@ COMMANDS: dict[str, dict[str, Command]] = {
         "": Command(
             _run,
             "run the pipeline DAG (targets=[...], pipeline=..., seeds=[0,1,2] for a trial per seed, --dry-run prints "
-            "the plan)",
-            flags=("--dry-run",),
+            "the plan; --quiet: failures only, --verbose: every stage start and scene)",
+            flags=("--dry-run", "--quiet", "--verbose"),
         ),
     },
     "status": {
-        "": Command(_status, "list recent MLflow runs of the configured store"),
+        "": Command(
+            _status,
+            "sweeps (trials done / total, state, duration, best row, last regression verdict), runs and regressions "
+            "of the configured store: args.sweep=NAME (its rows), args.state=running|done|failed|killed, args.limit=N",
+            defaults=["args=status"],
+        ),
     },
     "sweep": {
         "": Command(
             _sweep,
             "run an ablation table: sweep=NAME (conf/sweep/), overrides for every trial, seeds=[0,1,2] for a trial "
             "per seed; shared stages run once; --dry-run prints trials x stages (cached / shared / to run) and the "
-            "capacity plan on the cluster (--durations=FILE: measured seconds per task, JSON stage -> seconds)",
-            flags=("--dry-run",),
+            "capacity plan on the cluster (--durations=FILE: measured seconds per task, JSON stage -> seconds); "
+            "--quiet / --verbose",
+            flags=("--dry-run", "--quiet", "--verbose"),
             options=("--durations",),
         ),
     },
@@ -265,9 +224,10 @@ COMMANDS: dict[str, dict[str, Command]] = {
             _regress,
             "benchmark regression: benchmark=NAME (conf/benchmark/, default nightly) vs its baseline; exit 0 ok, "
             "1 regression, 2 error; --set-baseline records this run as the baseline; evaluation targets and stages "
-            "whose code changed recompute, --fresh recomputes every stage",
+            "whose code changed recompute, --fresh recomputes every stage; --dry-run prints the plan and the baseline "
+            "without running; --quiet / --verbose",
             defaults=["benchmark=nightly"],
-            flags=("--set-baseline", "--fresh"),
+            flags=("--set-baseline", "--fresh", "--dry-run", "--quiet", "--verbose"),
         ),
     },
     "compare": {
@@ -281,7 +241,14 @@ COMMANDS: dict[str, dict[str, Command]] = {
         ),
     },
     "ui": {
-        "": Command(_ui, "serve the MLflow UI of the configured store (ui.host=127.0.0.1, ui.port=5000)"),
+        "": Command(
+            _ui,
+            "gdwm's dashboard of the configured store: launches, live sweeps (trials x stages, table, plots, "
+            "downloads), trials, regressions, the zoo (--port N, 0 = a free one; --host H, default 127.0.0.1; "
+            "--mlflow also serves MLflow's own UI on ui.mlflow_port)",
+            flags=("--mlflow",),
+            options=("--port", "--host"),
+        ),
     },
     "zoo": {
         sub: Command(_zoo(sub), text, defaults=["args=zoo"])
@@ -417,6 +384,22 @@ def _join_options(args: list[str], options: tuple[str, ...]) -> tuple[list[str],
     return out, None
 
 
+def _follow_workdir(cfg: DictConfig) -> None:
+    """A workdir copied or moved since its last command: its store's artifact locations point at it again before
+    any command reads or writes them (``gdwm.tracking.relocate``)."""
+    uri = OmegaConf.select(cfg, "tracking.uri", default=None)
+    location = OmegaConf.select(cfg, "tracking.artifact_location", default=None)
+    db = sqlite_path(str(uri)) if uri else None
+    if db is None or not location or not Path(db).is_file():
+        return
+    from filelock import FileLock
+
+    from gdwm.tracking.relocate import relocate_store
+
+    with FileLock(f"{db}.lock"):  # the store's one-writer lock (gdwm.tracking.backend)
+        relocate_store(str(uri), str(location))
+
+
 def _terminated(signum: int, _frame) -> None:
     raise SystemExit(128 + signum)
 
@@ -468,6 +451,7 @@ def main(argv: list[str] | None = None) -> int:
         err_console.print(f"gdwm: config error: {e}", markup=False)
         return 2
     name = f"{command} {sub}".strip()
+    _follow_workdir(cfg)
     main_thread = threading.current_thread() is threading.main_thread()
     # SIGTERM unwinds like Ctrl-C: temp directories and open runs are cleaned up on the way out (exit 143)
     previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None

@@ -155,6 +155,18 @@ class CacheArgs:
     looked it up can still read it."""
 
 
+@dataclass
+class StatusArgs:
+    """``gdwm status [args.sweep=NAME] [args.state=STATE] [args.limit=N]``."""
+
+    sweep: str | None = None
+    """Show this sweep alone, with its rows."""
+    state: str | None = None
+    """Keep launches in this state: running, done, failed or killed."""
+    limit: int = 20
+    """At most this many launches per list, newest first."""
+
+
 class SceneErrorPolicy(StrEnum):
     fail = "fail"
     skip = "skip"
@@ -175,7 +187,11 @@ class RunSettings:
     plan: bool = False
     """Print the plan (cached / to run / blocked per stage and scene) and exit; same as --dry-run."""
     live: bool = True
-    """Show the rich live view while running (off when stdout is not a terminal)."""
+    """Show the live board while running (off when stdout is not a terminal: then one line per event)."""
+    heartbeat_s: float = 30.0
+    """Off a terminal: a line for every stage still running this often (its step, loss, scenes and ETA)."""
+    snapshot_s: float = 10.0
+    """The launch's progress snapshot on its MLflow run (``gdwm.events``) is written at most this often."""
     worker_logs: bool = False
     """Stream Ray workers' stdout/stderr to the driver (errors reach MLflow as error.txt either way)."""
     deterministic: bool | None = None
@@ -183,16 +199,30 @@ class RunSettings:
     deterministic kernels (slower on GPUs). null = on where a stage runs without CUDA, off where it has CUDA."""
 
 
+class UiAuth(StrEnum):
+    none = "none"
+    mlflow = "mlflow"
+
+
 @dataclass
 class UiConfig:
-    """``gdwm ui`` (the MLflow UI on the tracking store) and the run links of ``gdwm compare`` reports."""
+    """``gdwm ui`` (gdwm's dashboard over the tracking store; ``--mlflow`` adds MLflow's own UI) and the run links of
+    ``gdwm compare`` reports."""
 
     host: str = "127.0.0.1"
-    """Interface the UI binds to; 0.0.0.0 exposes it to the network."""
-    port: Annotated[int, Interval(ge=1, le=65535)] = 5000
-    """Port of the UI."""
+    """Interface the dashboard binds to; 0.0.0.0 exposes it to the network."""
+    port: Annotated[int, Interval(ge=0, le=65535)] = 5000
+    """Port of the dashboard; 0 picks a free one (``--port 0``)."""
+    mlflow_port: Annotated[int, Interval(ge=0, le=65535)] = 5001
+    """Port of MLflow's own UI with ``gdwm ui --mlflow`` (on ``host``); 0 picks a free one."""
     url: str | None = None
-    """Base URL report links point at; null = http://<host>:<port>."""
+    """Base URL of an MLflow UI that links to runs point at (reports, every dashboard page); null = MLflow's UI of
+    ``gdwm ui --mlflow`` (http://<host>:<mlflow_port>), or the tracking server itself for ``tracking=server``."""
+    poll_s: Annotated[float, Interval(gt=0)] = 2.0
+    """How often a live page (a running sweep, the home page) asks the dashboard for news."""
+    auth: UiAuth = UiAuth.none
+    """``mlflow``: every request needs HTTP basic-auth credentials that the tracking server (``tracking=server``)
+    accepts for the experiment, as its own UI does (the k8s Service); ``none``: no login (loopback)."""
 
 
 @dataclass
@@ -234,7 +264,7 @@ class GdwmConfig:
     benchmark: Any = None
     """Regression suite of ``gdwm regress`` (group ``benchmark/``)."""
     ui: UiConfig = field(default_factory=UiConfig)
-    """MLflow UI address."""
+    """Dashboard (``gdwm ui``) and MLflow UI addresses."""
     cache: CacheConfig = field(default_factory=CacheConfig)
     """Stage cache."""
     run: RunSettings = field(default_factory=RunSettings)
@@ -369,6 +399,7 @@ def _register_platform(cs: ConfigStore) -> None:
 
     cs.store(group="schema/args", name="zoo", node=ZooArgs)
     cs.store(group="schema/args", name="cache", node=CacheArgs)
+    cs.store(group="schema/args", name="status", node=StatusArgs)
 
 
 @cache
@@ -527,5 +558,13 @@ def explain(e: Exception) -> str:
 
 
 def ui_url(cfg: DictConfig) -> str:
-    """Where the MLflow UI answers (``ui.url``, else ``http://<ui.host>:<ui.port>``); report links point there."""
-    return cfg.ui.url or f"http://{cfg.ui.host}:{cfg.ui.port}"
+    """Where an MLflow UI answers for the store: ``ui.url``, else the tracking server itself (an http(s) store, its
+    credentials left out), else MLflow's UI of ``gdwm ui --mlflow``; report and dashboard links to runs point there."""
+    if cfg.ui.url:
+        return cfg.ui.url
+    uri = str(cfg.tracking.uri)
+    if uri.startswith(("http://", "https://")):
+        scheme, rest = uri.split("://", 1)
+        host, sep, path = rest.partition("/")
+        return f"{scheme}://{host.rpartition('@')[2]}{sep}{path}".rstrip("/")
+    return f"http://{cfg.ui.host}:{cfg.ui.mlflow_port}"

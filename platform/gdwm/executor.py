@@ -32,6 +32,7 @@ from gdwm.fromenv import masked, restore
 from gdwm.keylock import KeyLock
 from gdwm.stage import StageContext, StageDef, UpstreamOutput
 from gdwm.tracking import Sink, Tracker, TrackingClient
+from gdwm.tracking.params import flatten_params, relative_paths
 from gdwm.zoo.registry import lineage_tags
 
 TAG_STAGE, TAG_KEY, TAG_VERSION, TAG_SCENES = "gdwm.stage", "gdwm.cache_key", "gdwm.version", "gdwm.scenes"
@@ -45,18 +46,31 @@ COMPUTED, REUSED_SAME, REUSED_OTHER, REUSED_UNKNOWN = "", "same code", "other co
 
 
 class StageFailed(Exception):
-    """A stage (or some of its scenes) raised; the message names the stage, the scenes and the error."""
+    """A stage (or some of its scenes, or its actors' ``setup``) raised; the message is one line naming the stage,
+    the scenes and the error (its type and message); ``errors`` holds each full traceback."""
 
-    def __init__(self, stage: str, errors: Mapping[str | None, str]):
+    def __init__(self, stage: str, errors: Mapping[str | None, str], setup: bool = False):
         self.stage = stage
         self.errors = dict(errors)
+        self.setup = setup
         scenes = [s for s in self.errors if s is not None]
         where = f"stage '{stage}'" + (f" scene(s) {scenes}" if scenes else "")
-        last = next(iter(self.errors.values())).strip().splitlines()[-1] if self.errors else ""
-        super().__init__(f"{where} failed: {last}")
+        last = _last_line(next(iter(self.errors.values()))) if self.errors else ""
+        super().__init__(f"{where} failed{' in setup' if setup else ''}: {last}")
 
     def __reduce__(self):
-        return (StageFailed, (self.stage, self.errors))
+        return (StageFailed, (self.stage, self.errors, self.setup))
+
+
+def _last_line(text: str) -> str:
+    """A traceback's ``Type: message`` line (its last), for the one-line message."""
+    from gdwm.errors import _last_error_line
+
+    return _last_error_line(text) or text.strip().splitlines()[-1]
+
+
+class SetupFailed(Exception):
+    """A scene actor's ``setup`` raised (carried by its first ``process`` call: the stage's error, not a lost node)."""
 
 
 @dataclass(frozen=True)
@@ -236,9 +250,11 @@ def upstream_views(results: tuple[StageResult, ...]) -> dict[str, UpstreamOutput
     }
 
 
-def _progress(env: RunEnv, stage: str, scene: str | None, status: str, **kw) -> None:
+def _progress(env: RunEnv, scene: str | None, state: str, message: str | None = None) -> None:
+    """A worker's event (``gdwm.progress.Reporter``): an execution or scene started; a scene's outcome. The
+    execution's own outcome is the driver's to report (it sees the result, a killed worker can't say)."""
     if env.progress is not None:
-        env.progress.status.remote(stage, scene, status, **kw)
+        env.progress.state(state, scene, message)
 
 
 def _open_stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping) -> str:
@@ -265,7 +281,8 @@ def _stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping) -> str:
     if found:
         tags[TAG_RECOMPUTES] = found[0]["run_id"]
     run_id = env.tracking.create_run(f"{sd.name}-{key[:8]}", tags, env.parent_run_id)
-    env.tracking.log_params(run_id, dict(subset))
+    # paths relative to the workdir (the checkpoint root's parent): params describe the stage, not the machine
+    env.tracking.log_params(run_id, relative_paths(flatten_params(dict(subset)), Path(env.checkpoint_root).parent))
     return run_id
 
 
@@ -358,24 +375,21 @@ def run_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResult) ->
             hit, how = _lookup(cache, env, sd, key, base)  # another driver may have computed it while we waited
             if hit is None:
                 return _compute(sd, key, base, subset, env, results)
-    _progress(env, sd.name, None, "cached", key=hit.key, run_id=hit.run_id or "")
     path = str(cache.materialize(hit))
     return StageResult(sd.name, hit.key, True, hit.run_id, path, extra=dict(hit.extra), base=base, reused=how)
 
 
 def _compute(sd: StageDef, key: str, base: str, subset: dict, env: RunEnv, results) -> StageResult:
     run_id = _open_stage_run(env, sd, key, subset)
-    _progress(env, sd.name, None, "running", key=key, run_id=run_id)
+    _progress(env, None, "running")
     tracker = Tracker(env.sink, run_id)
     try:
         path, extra = _execute(sd, key, base, subset, env, results, tracker)
     except Exception as e:
         tb = traceback.format_exc()
         _end_failed(env, run_id, tb)
-        _progress(env, sd.name, None, "failed", message=str(e)[:200])
-        raise StageFailed(sd.name, {None: tb}) from None
+        raise StageFailed(sd.name, {None: tb}) from e
     env.tracking.end_run(run_id, "FINISHED")
-    _progress(env, sd.name, None, "done")
     return StageResult(sd.name, key, False, run_id, path, extra=extra, base=base)
 
 
@@ -383,7 +397,7 @@ def _key_lock(cache: Cache, env: RunEnv, stage: str, scene: str | None, key: str
     """The key's lock (see ``gdwm.keylock``); waiting for another driver shows on the progress board."""
 
     def waiting(owner: str) -> None:
-        _progress(env, stage, scene, "waiting", key=key, message=f"another driver computes it ({owner})")
+        _progress(env, scene, "running", message=f"waiting: another driver computes it ({owner})")
 
     return KeyLock(cache, stage, key, on_wait=waiting)
 
@@ -398,21 +412,29 @@ class SceneWorker:
 
     def __init__(self, sd: StageDef, subset: dict, num_cpus: float, deterministic: bool | None):
         self.sd = sd
+        self.setup_error: str | None = None
         stage_start(0, num_cpus, deterministic)  # heavy state (a random projection, say) the same in every actor
-        self.state = sd.setup(subset) if sd.setup is not None else None
+        try:
+            self.state = sd.setup(subset) if sd.setup is not None else None
+        except Exception:
+            # Kept, not raised: an actor whose constructor raises is dead, and Ray would restart and retry it as if
+            # its node were lost. The stage's own error fails the stage once (process raises it).
+            self.state, self.setup_error = None, traceback.format_exc()
 
     def process(self, scene: str, key: str, base: str, subset: dict, env: RunEnv, run_id: str, *results: StageResult):
+        if self.setup_error is not None:
+            raise SetupFailed(self.setup_error)
         cache = Cache(env.cache_uri)
         # A driver running another configuration may share this scene's key (same upstream, different scene set).
         with _key_lock(cache, env, self.sd.name, scene, key):
             forced = env.reuse.get(self.sd.name) == NONE
             if not forced and (hit := cache.lookup(self.sd.name, key, env.verify)) is not None:
-                _progress(env, self.sd.name, scene, "cached", key=key)
+                _progress(env, scene, "cached")
                 return str(cache.materialize(hit))
-            _progress(env, self.sd.name, scene, "running", key=key)
+            _progress(env, scene, "running")
             tracker = ScopedTracker(env.sink, run_id, f"{scene}/")
             path, _ = _execute(self.sd, key, base, subset, env, results, tracker, scene, self.state)
-        _progress(env, self.sd.name, scene, "done", key=key)
+        _progress(env, scene, "done")
         return path
 
 
@@ -436,7 +458,7 @@ def run_scene_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResu
                 misses.append(s)
             else:
                 done[s] = (hit.key, str(cache.materialize(hit)))
-                _progress(env, sd.name, s, "cached", key=hit.key)
+                _progress(env, s, "cached")
         return misses, aggregate_key(sd, subset, {s: done[s][0] if s in done else keys[s] for s in scenes}, env)
 
     agg_base = aggregate_key(sd, subset, bases, env)
@@ -446,7 +468,6 @@ def run_scene_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResu
             misses, agg = look(misses)  # another driver may have computed them while we waited
             if misses:
                 return _compute_scenes(sd, subset, env, results, scenes, misses, keys, bases, done, agg)
-    _progress(env, sd.name, None, "cached", key=agg)
     return StageResult(sd.name, agg, True, None, scenes=done, base=agg_base, bases=bases,
                        reused=least_trusted(list(how.values())))  # fmt: skip
 
@@ -455,13 +476,16 @@ def _compute_scenes(sd, subset, env: RunEnv, results, scenes, misses, keys, base
     upstream_failed = {s for r in results for s in r.failed}
     run_id = _open_stage_run(env, sd, agg, subset)
     env.tracking.set_tags(run_id, {TAG_SCENES: ",".join(misses)})
-    _progress(env, sd.name, None, "running", key=agg, run_id=run_id)
-    errors = _run_pool(sd, subset, env, run_id, results, misses, keys, bases, done)
+    _progress(env, None, "running")
+    try:
+        errors = _run_pool(sd, subset, env, run_id, results, misses, keys, bases, done)
+    except StageFailed as e:  # its actors' setup raised
+        _end_failed(env, run_id, next(iter(e.errors.values())))
+        raise
     for s in upstream_failed:
-        _progress(env, sd.name, s, "blocked")
+        _progress(env, s, "blocked")
     if errors and env.on_scene_error == "fail":
         _end_failed(env, run_id, "\n\n".join(f"== {s} ==\n{tb}" for s, tb in errors.items()))
-        _progress(env, sd.name, None, "failed", message=f"{len(errors)} scene(s) failed")
         raise StageFailed(sd.name, errors)
     if errors:
         env.tracking.log_text(run_id, "\n\n".join(f"== {s} ==\n{tb}" for s, tb in errors.items()), "skipped.txt")
@@ -469,7 +493,6 @@ def _compute_scenes(sd, subset, env: RunEnv, results, scenes, misses, keys, base
     agg = aggregate_key(sd, subset, {s: k for s, (k, _) in done.items()}, env)
     agg_base = aggregate_key(sd, subset, {s: bases[s] for s in done}, env)
     env.tracking.end_run(run_id, "FINISHED")
-    _progress(env, sd.name, None, "done", key=agg, message=f"{len(errors)} skipped" if errors else "")
     return StageResult(sd.name, agg, False, run_id, scenes=done, failed={**errors}, base=agg_base,
                        bases={s: bases[s] for s in done})  # fmt: skip
 
@@ -511,8 +534,10 @@ def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, bases, don
                 errors[s] = oom_line(e)
                 _progress(env, sd.name, s, "failed", message="out of memory")
             except ray.exceptions.RayTaskError as e:
+                if isinstance(e.cause, SetupFailed):  # the stage's own error: every scene would fail alike
+                    raise StageFailed(sd.name, {None: str(e.cause)}, setup=True) from None
                 errors[s] = _user_traceback(e)
-                _progress(env, sd.name, s, "failed", message=str(e.cause)[:200] if e.cause else "")
+                _progress(env, s, "failed")
             except ray.exceptions.RayActorError as e:
                 if getattr(e, "actor_init_failed", False):  # its setup raised: the stage's error, not a lost node
                     raise
@@ -522,7 +547,7 @@ def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, bases, don
                 lost[s] = lost.get(s, 0) + 1
                 if lost[s] > env.max_retries:
                     errors[s] = f"the scene's worker was lost {lost[s]} times: {type(e).__name__}: {e}"
-                    _progress(env, sd.name, s, "failed", message=type(e).__name__)
+                    _progress(env, s, "failed")
                 else:
                     if isinstance(e, ray.exceptions.ActorDiedError):
                         actors[actors.index(actor)] = actor = new_actor()

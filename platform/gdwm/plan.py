@@ -473,9 +473,16 @@ def why(entries: list[Manifest], sd, sub: dict, upstream: dict[str, str], base: 
     if not entries:
         return ""
     same = [m for m in entries if m.identity == base]
-    ref = max(same or entries, key=lambda m: m.created_at)
+    new = _flat(dict(sub))
+
+    def distance(m: Manifest) -> tuple[int, float]:
+        # the entry whose config differs least (a row's other seed, not another row's), then the newest
+        old = _flat(m.config)
+        return sum(old.get(k, "-") != new.get(k, "-") for k in old.keys() | new.keys()), -m.created_at
+
+    ref = min(same, key=lambda m: -m.created_at) if same else min(entries, key=distance)
     out = [f"version: {ref.version} -> {sd.version}"] if ref.version != sd.version else []
-    old, new = _flat(ref.config), _flat(dict(sub))
+    old = _flat(ref.config)
     out += [f"config: {k} {_short(old.get(k, '-'))} -> {_short(new.get(k, '-'))}"
             for k in sorted(old.keys() | new.keys()) if old.get(k, "-") != new.get(k, "-")]  # fmt: skip
     if ref.data_fingerprint != env.data_fingerprint:

@@ -20,6 +20,7 @@ import json
 import math
 import re
 import tempfile
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib.metadata import entry_points
@@ -29,10 +30,11 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
+from gdwm.board import resampling_progress
 from gdwm.compare.layout import Direction
-from gdwm.config import BenchmarkConfig, CheckTest, ConfigError, MetricCheck, load_config
+from gdwm.config import BenchmarkConfig, CheckTest, ConfigError, MetricCheck, load_config, sqlite_path
 from gdwm.names import check_name
-from gdwm.term import console, err_console
+from gdwm.term import console, err_console, verbosity
 
 KIND = "regression"
 BASELINE_TAG = "gdwm.baseline"
@@ -49,6 +51,8 @@ class Row:
     now: float | None
     tolerance: str
     verdict: str  # ok | improved | REGRESSION | missing | new
+    allowed: float | None = None
+    """The tolerance as an amount of the metric (the trend plot's band around the baseline); None when unknown."""
 
     @property
     def delta(self) -> float | None:
@@ -101,7 +105,7 @@ def check(
                     lo, hi = ci if c.direction == Direction.higher else (-ci[1], -ci[0])
                     if (verdict == "REGRESSION" and hi >= 0) or (verdict == "improved" and lo <= 0):
                         verdict = "ok (not significant)"
-        rows.append(Row(c.name, b, n, shown + arrow, verdict))
+        rows.append(Row(c.name, b, n, shown + arrow, verdict, None if math.isnan(tol) else tol))
     return rows
 
 
@@ -182,8 +186,12 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
             f"(benchmark.seeds has {n_seeds})"
         )
     backend, base_run = _baseline_before_launch(cfg, bench, "--set-baseline" in argv)
+    if "--dry-run" in argv:
+        return dry_run(cfg, bench, run_cfg, overrides)
     try:
-        summary = run_pipeline(run_cfg, overrides, seeds=bench.seeds, seeds_key="benchmark.seeds", live=False)
+        summary = run_pipeline(
+            run_cfg, overrides, seeds=bench.seeds, seeds_key="benchmark.seeds", live=False, verbosity=verbosity(argv)
+        )
     except PlanError as e:
         raise RegressError(f"benchmark '{bench.name}': {e}") from e
     if not summary.ok:
@@ -197,7 +205,8 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
         backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
     paired = None
     if base_run and any(c.test is CheckTest.bootstrap for c in bench.metrics):
-        paired = _paired(backend, bench, base_run["run_id"], now_samples)
+        with resampling_progress("gdwm regress", verbosity=verbosity(argv)):
+            paired = _paired(backend, bench, base_run["run_id"], now_samples)
     rows = check(bench.metrics, base_run["metrics"] if base_run else None, now, paired)
     print_rows(bench, rows, base_run, [t.trial.seed for t in summary.trials])
     flags = baseline_flags(backend, base_run["run_id"], stages) if base_run else []
@@ -212,13 +221,15 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
         backend.log_metrics(run_id, now)
         backend.log_params(run_id, {"overrides": " ".join(bench.overrides + user), "targets": bench.targets})
         backend.log_text(run_id, markdown(rows), "regression.md")
+        backend.log_text(run_id, json.dumps(checks_json(bench, rows), indent=1), CHECKS)
         backend.log_text(run_id, json.dumps(stages, indent=1, sort_keys=True), PROVENANCE)
         backend.log_text(run_id, json.dumps(_entry_keys(summary.trials), indent=1, sort_keys=True), CACHE_KEYS)
         if flags:
             backend.set_tags(run_id, {"gdwm.baseline_flag": "; ".join(flags)[:4000]})
         _log_samples(backend, run_id, now_samples)
+        backend.set_tags(run_id, {"gdwm.commit": _commit()} if _commit() else {})
         with tempfile.TemporaryDirectory() as tmp:
-            plot = trend_plot(backend, bench, now, Path(tmp) / "trend.png")
+            plot = trend_plot(backend, bench, now, Path(tmp) / "trend.png", rows, run_id, base_run)
             if plot is not None:
                 backend.log_artifact(run_id, str(plot))
         if "--set-baseline" in argv:
@@ -227,6 +238,8 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
     finally:
         backend.end_run(run_id, "FINISHED")
     bad = failed(rows)
+    console.print(f"regression run {run_id} ({'fail' if bad else 'pass'}; trend plot: its artifact trend.png)",
+                  markup=False)  # fmt: skip
     for r in bad:
         why = "" if r.verdict in ("REGRESSION", "missing") else f": {r.verdict}"
         err_console.print(f"regression: {r.metric} {_fmt(r.baseline)} -> {_fmt(r.now)} (tolerance {r.tolerance}){why}",
@@ -416,6 +429,18 @@ def print_rows(bench: BenchmarkConfig, rows: list[Row], base_run: dict | None, s
     console.print(t)
 
 
+CHECKS = "regression.json"
+"""Artifact of a regression run: every check as data (the dashboard draws the baseline and its band from it)."""
+
+
+def checks_json(bench: BenchmarkConfig, rows: list[Row]) -> list[dict]:
+    """Per check: metric, direction, baseline, now, tolerance (as printed), allowed (the band's half-width in the
+    metric's units; null when unknown) and verdict."""
+    direction = {c.name: Direction(c.direction).value for c in bench.metrics}
+    return [{"metric": r.metric, "direction": direction.get(r.metric, "higher"), "baseline": r.baseline, "now": r.now,
+             "tolerance": r.tolerance, "allowed": r.allowed, "verdict": r.verdict} for r in rows]  # fmt: skip
+
+
 def markdown(rows: list[Row]) -> str:
     lines = ["| metric | baseline | now | delta | tolerance | verdict |", "|---|---|---|---|---|---|"]
     for r in rows:
@@ -424,8 +449,22 @@ def markdown(rows: list[Row]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def trend_plot(backend, bench: BenchmarkConfig, now: dict[str, float], path: Path) -> Path | None:
-    """Each watched metric over this suite's past regression runs (oldest first), the current run last."""
+def _commit() -> str:
+    """The commit of the checkout gdwm runs from (empty outside a git checkout): the trend plot's x labels."""
+    import subprocess
+
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short=10", "HEAD"], cwd=Path(__file__).parent, capture_output=True,
+                             text=True, timeout=10)  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return out.stdout.strip() if out.returncode == 0 else ""
+
+
+def trend_plot(backend, bench: BenchmarkConfig, now: dict[str, float], path: Path, rows: list[Row] | None = None,
+               run_id: str | None = None, base_run: dict | None = None) -> Path | None:  # fmt: skip
+    """Each watched metric over this suite's regression runs, oldest first, this run last (once), each point labelled
+    with its date and commit; the baseline as a line with its tolerance band, the baseline run's point ringed."""
     names = [c.name for c in bench.metrics]
     if not names:
         return None
@@ -439,17 +478,62 @@ def trend_plot(backend, bench: BenchmarkConfig, now: dict[str, float], path: Pat
         200,
         order_by=["attributes.start_time ASC"],
     )
+    past = [r for r in past if r["run_id"] != run_id]  # this run is drawn once, from `now`
+    labels = [f"{time.strftime('%m-%d %H:%M', time.localtime(r['start_time'] / 1000))}\n"
+              f"{r['tags'].get('gdwm.commit', '')[:7]}" for r in past]  # fmt: skip
+    labels.append(f"{time.strftime('%m-%d %H:%M')}\n{_commit()[:7]} (now)")
+    by_metric = {r.metric: r for r in rows or []}
     cols = min(3, len(names))
-    rows = math.ceil(len(names) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.6 * rows), squeeze=False)
+    nrows = math.ceil(len(names) / cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(4.5 * cols, 3.2 * nrows), squeeze=False)
     for ax, name in zip(axes.flat, names, strict=False):
         ys = [r["metrics"].get(name, math.nan) for r in past] + [now.get(name, math.nan)]
-        ax.plot(range(len(ys)), ys, marker="o")
+        xs = list(range(len(ys)))
+        ax.plot(xs, ys, marker="o")
+        r = by_metric.get(name)
+        if r is not None and r.baseline is not None:
+            ax.axhline(r.baseline, color="gray", linestyle="--", linewidth=1, label="baseline")
+            if r.allowed is not None:
+                ax.axhspan(r.baseline - r.allowed, r.baseline + r.allowed, color="gray", alpha=0.15,
+                           label=f"tolerance {r.tolerance}")  # fmt: skip
+            at = [i for i, p in enumerate(past) if base_run and p["run_id"] == base_run["run_id"]]
+            if at:
+                ax.plot(at, [ys[i] for i in at], marker="o", markersize=11, fillstyle="none", color="black",
+                        linestyle="none")  # fmt: skip
+            ax.legend(fontsize=7)
         ax.set_title(name, fontsize=9)
-        ax.set_xlabel("regression run")
+        ax.set_xticks(xs, labels, fontsize=6, rotation=45, ha="right")
     for ax in list(axes.flat)[len(names) :]:
         ax.axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
     return path
+
+
+def dry_run(cfg: DictConfig, bench: BenchmarkConfig, run_cfg: DictConfig, overrides: list[str]) -> int:
+    """``--dry-run``: the plan (what would run, what is cached and why stages re-run), the baseline and every check
+    with its tolerance; nothing runs and nothing is logged."""
+    from gdwm.plan import PlanError
+    from gdwm.runner import run_pipeline
+    from gdwm.tracking import TrackingBackend
+
+    try:
+        run_pipeline(run_cfg, overrides, seeds=bench.seeds, seeds_key="benchmark.seeds", dry_run=True)
+    except PlanError as e:
+        raise RegressError(f"benchmark '{bench.name}': {e}") from e
+    base_run = None
+    if (db := sqlite_path(cfg.tracking.uri)) is None or Path(db).is_file():
+        base_run = _baseline(TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment,
+                                             cfg.tracking.artifact_location), bench)  # fmt: skip
+    where = f"baseline run {base_run['run_id']}" if base_run else "no baseline yet (--set-baseline records one)"
+    t = Table(title=f"regression '{bench.name}' would compare with {where}", header_style="bold")
+    for col in ("metric", "baseline", "tolerance", "test"):
+        t.add_column(col)
+    for c in bench.metrics:
+        b = base_run["metrics"].get(c.name) if base_run else None
+        tol = f"{c.sigma:g}σ" if c.sigma is not None else f"{c.tolerance:.0%}" if c.relative else f"{c.tolerance:g}"
+        t.add_row(c.name + (" ↑" if c.direction == Direction.higher else " ↓"), _fmt(b), tol, str(c.test.value))
+    console.print(t)
+    console.print("dry run: nothing ran, nothing was logged", markup=False)
+    return 0

@@ -22,6 +22,7 @@ import contextlib
 import hashlib
 import itertools
 import json
+import logging
 import math
 import os
 import signal
@@ -29,14 +30,16 @@ import socket
 import statistics
 import sys
 import threading
+import time
+import traceback
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import ray
 from omegaconf import DictConfig, OmegaConf
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
-from rich.live import Live
 from rich.table import Table
 
 from gdwm.cache import CACHE_KEYS, Cache
@@ -44,6 +47,7 @@ from gdwm.config import SweepConfig
 from gdwm.dag import Pipeline
 from gdwm.determinism import worker_env
 from gdwm.errors import one_line, oom_line
+from gdwm.events import Event, launch_id
 from gdwm.executor import (
     REUSED_SAME,
     StageFailed,
@@ -56,6 +60,7 @@ from gdwm.executor import (
 )
 from gdwm.fromenv import recorded
 from gdwm.keylock import KeyLock
+from gdwm.monitor import Monitor
 from gdwm.plan import (
     PlanError,
     PlanRow,
@@ -68,10 +73,11 @@ from gdwm.plan import (
     resolve_seeds,
 )
 from gdwm.preflight import check_ray_temp
-from gdwm.progress import ProgressActor, render
+from gdwm.progress import Execution, LaunchProgress, ProgressActor, Reporter
 from gdwm.simcluster import SimCluster, SimConfig
-from gdwm.term import console, err_console
+from gdwm.term import NORMAL, QUIET, console, err_console
 from gdwm.tracking import AliveExcept, RunGuard, Sink, TrackingClient, open_tracking, process_owner
+from gdwm.tracking.params import flatten_params, relative_paths
 from gdwm.zoo.registry import metric_tags
 
 __all__ = ["PlanError", "RunError", "launch", "run_pipeline"]
@@ -105,6 +111,8 @@ class LaunchSummary:
     naive: int = 0
     """Stage executions the trials would need as independent runs without a cache."""
     parent_run_id: str | None = None
+    monitor: Monitor | None = None
+    """The launch's progress (its state, events file and folder); None when nothing launched."""
 
     @property
     def ok(self) -> bool:
@@ -130,9 +138,12 @@ def init_ray(cfg: DictConfig) -> SimCluster | bool:
     if ray.is_initialized():
         return False
     c = cfg.cluster
-    kwargs = {"include_dashboard": False, "log_to_driver": cfg.run.worker_logs}
+    # Ray's INFO banner ("Started a local Ray instance") is noise in gdwm's output; its warnings still show.
+    kwargs = {"include_dashboard": False, "log_to_driver": cfg.run.worker_logs, "logging_level": logging.WARNING}
     env_vars = worker_env(cfg.run.deterministic)
     started: SimCluster | bool = True
+    if not c.address:
+        own_ray_auth()
     if c.address:
         check_address(str(c.address), float(c.get("connect_timeout_s", 10.0)))
         # A cluster's workers run the installed wheel (k8s/Dockerfile); the driver's paths mean nothing there.
@@ -179,6 +190,26 @@ def check_address(address: str, timeout_s: float) -> None:
             f"cluster.address={address}: no Ray cluster answers there ({why} within {timeout_s:g} s); "
             "is the head up and the address right?"
         ) from None
+
+
+AUTH_MODE_ENV = "RAY_AUTH_MODE"
+"""Ray sets it to ``token`` in the driver when it turns token authentication on (by default for a local Ray)."""
+
+
+class _TokenAuthNotice(logging.Filter):
+    """Drops Ray's warning that token authentication is on, which it logs on every local start: on is what gdwm
+    wants (and what Ray does by default), so a launch's log need not say it each time. Ray's warning that it is
+    *off* still shows."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Token authentication is enabled for this Ray cluster")
+
+
+def own_ray_auth() -> None:
+    """Install the filter above on Ray's token-setup logger (once per process)."""
+    logger = logging.getLogger("ray._private.authentication.authentication_token_setup")
+    if not any(isinstance(f, _TokenAuthNotice) for f in logger.filters):
+        logger.addFilter(_TokenAuthNotice())
 
 
 _TERMINATED: list[int] = []
@@ -278,7 +309,7 @@ class Layout:
         if run_id is None:
             tags |= {"gdwm.pipeline": self.pipeline}
             run_id = tracking.create_run(f"run-{self.pipeline}-{tags['gdwm.run_key'][:8]}", tags, None)
-            tracking.log_params(run_id, recorded(cfg))
+            tracking.log_params(run_id, config_params(cfg))
         return run_id
 
     def _row_tags(self, row: Row) -> dict[str, str]:
@@ -293,7 +324,7 @@ class Layout:
             tracking.set_tags(run_id, tags)  # an edited row keeps its run; its index may move
             return run_id
         run_id = tracking.create_run(f"{self.sweep.name}/{row.label}", tags, parent)
-        tracking.log_params(run_id, recorded(cfg))
+        tracking.log_params(run_id, config_params(cfg) | factor_params(row))
         return run_id
 
     def _trial_run(self, tracking: TrackingClient, row: Row, t: Trial) -> str:
@@ -305,8 +336,21 @@ class Layout:
             return run_id
         name = f"{self.sweep.name}/{t.name}" if self.sweep else f"seed-{t.seed}"
         run_id = tracking.create_run(name, tags, row.run_id)
-        tracking.log_params(run_id, recorded(t.cfg))
+        tracking.log_params(run_id, config_params(t.cfg) | (factor_params(row) if self.sweep else {}))
         return run_id
+
+
+FACTOR_PARAM = "factor."
+"""A row's factors are params ``factor.<name>`` (MLflow's compare view plots params) and tags ``gdwm.factor.<name>``."""
+
+
+def factor_params(row: Row) -> dict[str, str]:
+    return {f"{FACTOR_PARAM}{k}": str(v) for k, v in row.factors.items()}
+
+
+def config_params(cfg: DictConfig) -> dict[str, str]:
+    """A config as a run's params: flattened, paths relative to the workdir (``gdwm.tracking.relative_paths``)."""
+    return relative_paths(flatten_params(recorded(cfg)), cfg.workdir)
 
 
 def launch_key(pipe_name: str, trials: list[Trial]) -> str:
@@ -359,8 +403,12 @@ def report_evaluation(
     ``gdwm.samples.<stage>``, ``gdwm.scorer.<stage>``, ``gdwm.strata.<stage>``: what ``gdwm compare`` resamples)
     onto the trial's run."""
     metrics = evaluation_metrics(pipe, results)
-    if metrics:
-        tracking.log_metrics(run_id, metrics)
+    values = {k: v for k, v in metrics.items() if not k.startswith(COUNT)}
+    if values:
+        tracking.log_metrics(run_id, values)
+    counts = {f"gdwm.{k}": f"{v:g}" for k, v in metrics.items() if k.startswith(COUNT)}
+    if counts:  # how many samples were answered or skipped: a fact about the run, not a score to sort or plot
+        tracking.set_tags(run_id, counts)
     for name, r in results.items():
         if pipe.stages[name].evaluation and r.path:
             for table in sorted(Path(r.path).glob("*.parquet")):
@@ -371,6 +419,10 @@ def report_evaluation(
     if tags:
         tracking.set_tags(run_id, tags)
     return metrics
+
+
+COUNT = "count/"
+"""Evaluation values that are counts (``count/answered``): tags ``gdwm.count/<name>`` of the trial run, not metrics."""
 
 
 def aggregate(per_seed: list[dict[str, float]]) -> dict[str, float]:
@@ -384,6 +436,19 @@ def aggregate(per_seed: list[dict[str, float]]) -> dict[str, float]:
         out[f"n/{m}"] = float(len(values))
         if len(values) > 1:
             out[f"std/{m}"] = statistics.stdev(values)
+    return out
+
+
+def row_metrics(agg: Mapping[str, float]) -> dict[str, float]:
+    """A row's aggregate as its run's metrics: the mean as ``<metric>``, the spread over seeds as ``<metric>/std``
+    (beside ``<metric>/ci_low`` and ``<metric>/ci_high``, which ``gdwm compare`` logs); the count of seeds is a tag
+    ``gdwm.n.<metric>``, not a metric."""
+    out = {}
+    for m, v in agg.items():
+        if m.startswith("std/"):
+            out[f"{m.removeprefix('std/')}/std"] = v
+        elif not m.startswith("n/"):
+            out[m] = v
     return out
 
 
@@ -406,96 +471,166 @@ def _root_cause(e: BaseException) -> BaseException:
     return e
 
 
-def _outcome(ref: ray.ObjectRef, stage: str) -> Outcome:
+def _label(t: Trial) -> str:
+    """A trial as progress names it: its row label (and seed), ``seed N`` for ``gdwm run``."""
+    return t.name or f"seed {t.seed}"
+
+
+def _trial_map(trials: list[Trial]) -> dict[str, list[tuple[str, str]]]:
+    return {_label(t): [(n, t.keys[n]) for n in t.order] for t in trials}
+
+
+def _executions(trials: list[Trial], priors: Mapping[str, Any]) -> list[Execution]:
+    """Every distinct stage key of the launch with the trials it serves, its scenes and its expected duration."""
+    out: dict[tuple[str, str], Execution] = {}
+    for t in trials:
+        for name in t.order:
+            k = (name, t.keys[name])
+            if k in out:
+                out[k].trials.append(_label(t))
+                continue
+            sd = t.pipe.stages[name]
+            rows = [r for r in t.plan if r.stage == name]
+            todo = sum(r.status == "to run" for r in rows)
+            per_task = priors.get(name)
+            if not todo:
+                estimate = 0.0
+            elif per_task is None:
+                estimate = None
+            elif sd.per_scene:
+                pool = int(t.env().resources.get(sd.resources, {}).get("num_workers", 1)) or 1
+                estimate = math.ceil(todo / pool) * per_task.seconds
+            else:
+                estimate = per_task.seconds
+            out[k] = Execution(name, k[1], [_label(t)], len(rows) if sd.per_scene else 0, estimate)
+    return list(out.values())
+
+
+def _priors(tracking: TrackingClient, trials: list[Trial]) -> dict[str, Any]:
+    """Seconds per task of each stage from the store's finished stage runs (``gdwm.capacity.stage_durations``)."""
+    from gdwm.capacity import stage_durations
+
     try:
-        return ray.get(ref)
-    except Exception as e:  # Ray re-raises a task's error as a subclass of both RayTaskError and it
-        root = _root_cause(e)
-        if isinstance(root, StageFailed) and root.stage != stage:
-            return None
-        if isinstance(root, ray.exceptions.OutOfMemoryError):  # Ray's report is many lines; the cause fits in one
-            return f"stage '{stage}' failed: {oom_line(root)}"
-        return StageFailed.__str__(root) if isinstance(root, StageFailed) else f"stage '{stage}' failed: {root!r}"
+        runs = tracking.search_runs("tags.`gdwm.kind` = 'stage' and attributes.status = 'FINISHED'", 5000)
+    except Exception:  # an ETA is a nicety: a store that can't answer this must not stop the launch
+        return {}
+    t = trials[0]
+    res = t.env().resources
+    asks_gpu = {n: float(res.get(t.pipe.stages[n].resources, {}).get("num_gpus", 0)) > 0 for n in t.order}
+    return stage_durations(runs, str(t.cfg.cluster.name), asks_gpu)
 
 
-def _with_running_scenes(message: str, stage: str, progress) -> str:
-    """An out-of-memory end of a per-scene stage's coordinating task (Ray's OOM killer may pick it over the actor
-    that filled the node) names the scenes the board shows running then, one of which filled it."""
-    head = f"stage '{stage}' failed: out of memory"
-    if not message.startswith(head):
-        return message
-    items = ray.get(progress.snapshot.remote())
-    scenes = sorted(i.scene for i in items if i.stage == stage and i.scene is not None and i.status == "running")
-    return message.replace(f"stage '{stage}'", f"stage '{stage}' scene(s) {scenes}", 1) if scenes else message
-
-
-def _print_stage(k: tuple[str, str], r: Outcome, users: list[str]) -> None:
-    what = "failed" if isinstance(r, str) else "blocked" if r is None else "cached" if r.cached else "done"
-    shared = f" (shared by {len(users)} trials)" if len(users) > 1 else ""
-    console.print(f"  {k[0]:<14} {k[1][:12]}  {what}{shared}", markup=False)
+def _failure(root: BaseException, stage: str, running: list[str]) -> tuple[str, str]:
+    """(one line naming stage, scene and error; the full traceback) of a stage task's error. ``running``: the scenes
+    the stage had running, named when Ray's OOM killer ended the stage's coordinating task (it may pick that task
+    over the actor that filled the node, one of those scenes)."""
+    if isinstance(root, ray.exceptions.OutOfMemoryError):  # Ray's report is many lines; the cause fits in one
+        where = f" scene(s) {running}" if running else ""
+        return f"stage '{stage}'{where} failed: {oom_line(root)}", str(root)
+    if isinstance(root, StageFailed):
+        text = "\n\n".join(f"== {s} ==\n{tb}" if s else tb for s, tb in root.errors.items())
+        return str(root), text
+    return f"stage '{stage}' failed: {one_line(root)}", "".join(traceback.format_exception(root))
 
 
 def execute(
     trials: list[Trial],
     sink: Sink,
     parent: str,
-    on_trial: Callable[[Trial, dict[str, Outcome]], None],
+    on_trial: Callable[[Trial, dict[str, Outcome]], Event | None],
+    monitor: Monitor,
     *,
     stage_tags: dict[str, str] | None = None,
-    progress=None,
-    live: bool = False,
-    print_stages: bool = True,
 ) -> int:
     """Submit every distinct stage key once, poll until every trial has an outcome per stage, hand each finished
-    trial to ``on_trial``; returns how many stage executions ran (not cached)."""
+    trial to ``on_trial``; returns how many stage executions ran (not cached). Every state change goes through
+    ``monitor`` (the board, the log lines, the events file, the MLflow snapshot)."""
     submitted: dict[tuple[str, str], ray.ObjectRef] = {}
+    upstream: dict[tuple[str, str], set[tuple[str, str]]] = {}
     for t in trials:
         # the cluster profile a stage ran on: `gdwm sweep --dry-run` estimates durations from that cluster's runs
-        env = t.env(sink, parent, progress, run_tags={"gdwm.cluster": str(t.cfg.cluster.name), **(stage_tags or {})})
+        env = t.env(sink, parent, None, run_tags={"gdwm.cluster": str(t.cfg.cluster.name), **(stage_tags or {})})
         refs: dict[str, ray.ObjectRef] = {}
         for name in t.order:
             sd = t.pipe.stages[name]
             k = (name, t.keys[name])
+            upstream.setdefault(k, set()).update((u, t.keys[u]) for u in sd.upstream)
             if k not in submitted:
                 fn = run_scene_stage if sd.per_scene else run_stage
                 ups = [refs[u] for u in sd.upstream]
-                submitted[k] = fn.options(**task_options(sd, env)).remote(sd, stage_config(sd, t.cfg), env, *ups)
+                mine = replace(env, progress=Reporter(monitor.actor, *k) if monitor.actor is not None else None)
+                submitted[k] = fn.options(**task_options(sd, mine)).remote(sd, stage_config(sd, t.cfg), mine, *ups)
             refs[name] = submitted[k]
-    users = {k: [t.name for t in trials if t.keys.get(k[0]) == k[1]] for k in submitted}
+    order = {ref: i for i, ref in enumerate(submitted.values())}
     outcome: dict[tuple[str, str], Outcome] = {}
     pending = {ref: k for k, ref in submitted.items()}
     waiting = list(trials)
     executions = 0
 
-    def poll() -> None:
+    def finish(k: tuple[str, str], ref: ray.ObjectRef) -> None:
         nonlocal executions
+        ex = monitor.lp.executions[k]
+        try:
+            res: StageResult | BaseException = ray.get(ref)
+        except Exception as e:  # Ray re-raises a task's error as a subclass of both RayTaskError and it
+            res = _root_cause(e)
+        bad_up = [u for u in upstream[k] if u in outcome and not isinstance(outcome[u], StageResult)]
+        if isinstance(res, StageResult):
+            outcome[k] = res
+            executions += not res.cached
+            skipped = f"{len(res.failed)} scene(s) skipped" if res.failed else None
+            took = ex.elapsed(time.time()) if not res.cached else None
+            monitor.emit(Event("stage", "cached" if res.cached else "done", *k, trials=ex.trials, duration_s=took,
+                               message=skipped))  # fmt: skip
+        elif bad_up or (isinstance(res, StageFailed) and res.stage != k[0]):
+            outcome[k] = None
+            monitor.emit(Event("stage", "blocked", *k, trials=ex.trials, message=f"{bad_up[0][0] if bad_up else ''}"))
+        else:
+            running = sorted(sc for sc, state in ex.scenes.items() if state == "running")
+            line, text = _failure(res, k[0], running)
+            rel = monitor.traceback(*k, text)
+            outcome[k] = f"{line}; traceback: {monitor.shown(rel)}"
+            monitor.emit(Event("stage", "failed", *k, trials=ex.trials, duration_s=ex.elapsed(time.time()),
+                               cause=outcome[k], traceback=rel))  # fmt: skip
+            block_below(k)
+
+    def block_below(k: tuple[str, str]) -> None:
+        """Everything downstream of a failed execution is blocked now: Ray would fail each of them with the
+        failure's own error as their results arrive, one by one."""
+        todo = [d for d, ups in upstream.items() if k in ups]
+        while todo:
+            d = todo.pop(0)
+            if d in outcome:
+                continue
+            outcome[d] = None
+            monitor.emit(Event("stage", "blocked", *d, trials=monitor.lp.executions[d].trials, message=k[0]))
+            todo += [x for x, ups in upstream.items() if d in ups]
+
+    def poll() -> None:
         if _TERMINATED:
             raise SystemExit(128 + _TERMINATED[0])
         ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=0.5)
-        for ref in ready:
+        monitor.poll()  # the workers' events before the outcomes they precede
+        blocked_before = {k for k, v in outcome.items() if v is None}
+        for ref in sorted(ready, key=order.__getitem__):  # upstream first: a failure blocks what follows it
             k = pending.pop(ref)
-            outcome[k] = _outcome(ref, k[0])
-            if isinstance(outcome[k], str) and progress is not None:
-                outcome[k] = _with_running_scenes(outcome[k], k[0], progress)
-            if print_stages:
-                _print_stage(k, outcome[k], users[k])
-            if isinstance(outcome[k], StageResult) and not outcome[k].cached:
-                executions += 1
-            if progress is not None and outcome[k] is None:
-                progress.status.remote(k[0], None, "blocked", message="an upstream stage failed")
+            if k not in outcome:  # else already blocked by an upstream failure
+                finish(k, ref)
+        blocked = [monitor.lp.executions[k] for k, v in outcome.items() if v is None and k not in blocked_before]
+        if blocked:
+            failed = [e.stage for e in monitor.lp.executions.values() if e.state == "failed"]
+            because = f"{', '.join(dict.fromkeys(failed)) or 'an upstream stage'} failed"
+            if (line := monitor.lines.blocked(time.time(), blocked, because)) is not None:
+                monitor.say(line)
         for t in [t for t in waiting if all((n, t.keys[n]) in outcome for n in t.order)]:
             waiting.remove(t)
-            on_trial(t, {n: outcome[(n, t.keys[n])] for n in t.order})
+            ev = on_trial(t, {n: outcome[(n, t.keys[n])] for n in t.order})
+            if ev is not None:
+                monitor.emit(ev)
 
-    order = list(dict.fromkeys(n for t in trials for n in t.order))
-    if live and progress is not None and console.is_terminal:
-        with Live(render([], order), console=console, refresh_per_second=4) as view:
-            while pending or waiting:
-                poll()
-                view.update(render(ray.get(progress.snapshot.remote()), order))
-    else:
-        while pending or waiting:
-            poll()
+    while pending or waiting:
+        poll()
+    monitor.poll()
     return executions
 
 
@@ -506,7 +641,7 @@ def launch(
     layout: Layout,
     *,
     live: bool = False,
-    print_stages: bool = True,
+    verbosity: int = NORMAL,
 ) -> LaunchSummary:
     """Run planned trials under one driver session and record them as ``layout`` says."""
     summary = LaunchSummary(naive=sum(len(t.order) for t in trials))
@@ -519,30 +654,53 @@ def launch(
             tracking.log_text(t.run_id, json.dumps(planned_keys(t), indent=1), CACHE_KEYS)
         # on the driver's node, as the tracking actor: a worker node lost mid-run must not take the board along
         here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
-        progress = ProgressActor.options(scheduling_strategy=here).remote() if layout.sweep is None else None
+        actor = ProgressActor.options(scheduling_strategy=here).remote()
+        kind, name = ("sweep", layout.sweep.name) if layout.sweep else ("run", layout.pipeline)
+        lp = LaunchProgress(kind, name, launch_id(kind, name), _trial_map(trials),
+                            _executions(trials, _priors(tracking, trials)))  # fmt: skip
+        monitor = Monitor(lp, Path(cfg.workdir).resolve(), str(cfg.workdir), actor=actor, tracking=tracking,
+                          run_id=parent, verbosity=verbosity, live=live, heartbeat_s=float(cfg.run.heartbeat_s),
+                          snapshot_s=float(cfg.run.snapshot_s))  # fmt: skip
+        summary.monitor = monitor
 
-        def on_trial(t: Trial, outcomes: dict[str, Outcome]) -> None:
-            results[id(t)] = _finish_trial(tracking, layout, t, outcomes)
+        def on_trial(t: Trial, outcomes: dict[str, Outcome]) -> Event:
+            results[id(t)] = res = _finish_trial(tracking, layout, t, outcomes)
             row_trials = [x for x in trials if x.row is t.row]
             if all(id(x) in results for x in row_trials):
                 _finish_row(tracking, layout, t.row, [results[id(x)] for x in row_trials])
+            if res.ok:
+                return Event("trial", "done", trials=[_label(t)], message=f"finished ({len(res.metrics)} metrics)")
+            stage = next(iter(res.failed), res.blocked[0] if res.blocked else "")
+            return Event("trial", "failed", trials=[_label(t)], message=f"failed at {stage}", stage=stage)
 
         try:
-            with RunGuard(tracking.sink, parent):
-                summary.executions = execute(trials, tracking.sink, parent, on_trial, stage_tags=layout.stage_tags,
-                                             progress=progress, live=live, print_stages=print_stages)  # fmt: skip
+            with RunGuard(tracking.sink, parent), monitor:
+                c = lp.counts()
+                auth = "on" if os.environ.get(AUTH_MODE_ENV, "").lower() == "token" else "off"
+                monitor.emit(Event("launch", "running", launch=lp.launch, total=c["executions"],
+                                   message=f"{c['trials']} trial(s), {c['executions']} stage executions; "
+                                   f"Ray token authentication {auth}"))  # fmt: skip
+                tracking.set_tags(parent, {"gdwm.events": monitor.events_path})
+                summary.executions = execute(trials, tracking.sink, parent, on_trial, monitor,
+                                             stage_tags=layout.stage_tags)  # fmt: skip
                 summary.trials = [results[id(t)] for t in trials]
+                ok = summary.ok
+                monitor.emit(Event("launch", "done" if ok else "failed", duration_s=lp.elapsed(),
+                                   snapshot=lp.snapshot(monitor.events_path)))  # fmt: skip
                 if layout.sweep is None:
-                    tracking.log_metrics(parent, {"stages_run": summary.executions})
-                    _print_run_summaries(summary, progress)
-                    if not summary.ok:  # the guard ends the run FAILED; the caller reports from the summary
+                    tracking.set_tags(parent, {"gdwm.stages_run": str(summary.executions)})
+                    if ok and verbosity > QUIET:
+                        _print_run_summaries(summary, lp)
+                    if not ok:  # the guard ends the run FAILED; the caller reports from the summary
                         bad = next(t for t in summary.trials if not t.ok)
                         stage = next(iter(bad.failed), bad.blocked[0] if bad.blocked else "")
                         raise StageFailed(stage, {None: bad.failed.get(stage, "blocked")})
                 else:
-                    tracking.log_metrics(parent, {
-                        "trials": len(trials), "trials_failed": sum(not t.ok for t in summary.trials),
-                        "stage_executions": summary.executions, "stage_executions_naive": summary.naive,
+                    tracking.set_tags(parent, {
+                        "gdwm.trials": str(len(trials)),
+                        "gdwm.trials_failed": str(sum(not t.ok for t in summary.trials)),
+                        "gdwm.stage_executions": str(summary.executions),
+                        "gdwm.stage_executions_naive": str(summary.naive),
                     })  # fmt: skip
         except StageFailed:
             pass
@@ -579,8 +737,6 @@ def _finish_trial(tracking: TrackingClient, layout: Layout, t: Trial, outcomes: 
         tracking.log_text(t.run_id, msg, "error.txt")
         if own_run:
             tracking.end_run(t.run_id, "FAILED")
-        if layout.sweep is not None:
-            console.print(f"[red]trial '{t.name}' failed at {stage}[/red]")
         return res
     links = {f"gdwm.stage_run.{n}": r.run_id for n, r in res.results.items() if r.run_id}
     tracking.set_tags(t.run_id, links | {f"gdwm.stage_key.{n}": r.key for n, r in res.results.items()})
@@ -591,7 +747,6 @@ def _finish_trial(tracking: TrackingClient, layout: Layout, t: Trial, outcomes: 
         lineage = {"gdwm.sweep": layout.sweep.name, "gdwm.trial": t.run_id, "gdwm.row": t.label}
         lineage |= metric_tags({k: v for k, v in res.metrics.items() if not k.startswith("count/")})
         tracking.tag_versions([r.key for r in res.results.values()], lineage)
-        console.print(f"[green]trial '{t.name}' finished[/green] ({len(res.metrics)} metrics)")
     if own_run and not res.blocked:
         tracking.end_run(t.run_id, "FINISHED")
     return res
@@ -603,7 +758,9 @@ def _finish_row(tracking: TrackingClient, layout: Layout, row: Row, results: lis
         return
     agg = aggregate([r.metrics for r in results if r.ok])
     if agg:
-        tracking.log_metrics(row.run_id, agg)
+        tracking.log_metrics(row.run_id, row_metrics(agg))
+        tracking.set_tags(row.run_id, {f"gdwm.n.{m.removeprefix('n/')}": f"{v:g}" for m, v in agg.items()
+                                       if m.startswith("n/")})  # fmt: skip
     if layout.sweep is not None:
         tracking.end_run(row.run_id, "FINISHED" if any(r.ok for r in results) else "FAILED")
 
@@ -617,6 +774,7 @@ def run_pipeline(
     seeds_key: str = "seeds",
     dry_run: bool = False,
     live: bool | None = None,
+    verbosity: int = NORMAL,
 ) -> LaunchSummary:
     """``gdwm run``: one row of trials, one per seed (``seeds=[...]``, else ``seeds``, else ``[seed]``).
 
@@ -646,7 +804,7 @@ def run_pipeline(
     pipe = trials[0].pipe
     layout = Layout(None, f"run:{launch_key(pipe.name, trials)}", pipe.name)
     show = cfg.run.live if live is None else live
-    return launch(cfg, [row], trials, layout, live=show, print_stages=False)
+    return launch(cfg, [row], trials, layout, live=show, verbosity=verbosity)
 
 
 def _cached_results(rows: list[PlanRow], cache: Cache) -> dict[str, StageResult]:
@@ -700,9 +858,7 @@ def print_plan(trials: list[Trial]) -> None:
     print_reasons(trials)
 
 
-def _print_run_summaries(summary: LaunchSummary, progress) -> None:
-    items = ray.get(progress.snapshot.remote()) if progress is not None else []
-    heads = {i.stage: i for i in items if i.scene is None}
+def _print_run_summaries(summary: LaunchSummary, lp: LaunchProgress) -> None:
     for res in summary.trials:
         title = "run summary" + (f" (seed {res.trial.seed})" if len(summary.trials) > 1 else "")
         t = Table(title=title, header_style="bold")
@@ -716,11 +872,8 @@ def _print_run_summaries(summary: LaunchSummary, progress) -> None:
                     status += f" ({len(r.failed)} scene(s) skipped)"
             else:
                 status = "failed" if name in res.failed else "blocked"
-            head = heads.get(name)
-            wall = head.wall if head is not None else None
+            ex = lp.executions.get((name, res.trial.keys.get(name, "")))
+            wall = ex.elapsed(lp.clock()) if ex is not None and not (r is not None and r.cached) else None
             key = r.key[:12] if r else res.trial.keys.get(name, "")[:12]
-            run_id = (r.run_id or "") if r else (head.run_id if head is not None else "")
-            t.add_row(name, status, f"{wall:.1f}" if wall is not None else "", key, run_id)
+            t.add_row(name, status, f"{wall:.1f}" if wall is not None else "", key, (r.run_id or "") if r else "")
         console.print(t)
-        for msg in res.failed.values():
-            console.print(f"[red]{msg}[/red]", markup=True)

@@ -209,11 +209,16 @@ class StageContext:
         return download(self.tracking_uri, r.name, r.version, self.checkpoint_dir / "zoo" / r.name / str(r.version))
 
     def progress(self, done: int, total: int, message: str = "") -> None:
+        """Report ``done`` of ``total`` units of work (iterations, samples, views) with a short text: the launch's
+        board, log heartbeats and ETA show it."""
         if self.progress_sink is not None:
-            self.progress_sink.update.remote(self.name, self.scene, done, total, message)
+            self.progress_sink.progress(self.scene, done, total, message)
 
-    def train(self, loop: Callable[[dict], None], loop_config: Mapping[str, Any] | None = None) -> Any:
-        """Run ``loop`` under Ray Train with this stage's ScalingConfig; resumes from ``checkpoint_dir``."""
+    def train(
+        self, loop: Callable[[dict], None], loop_config: Mapping[str, Any] | None = None, total_steps: int | None = None
+    ) -> Any:
+        """Run ``loop`` under Ray Train with this stage's ScalingConfig; resumes from ``checkpoint_dir``.
+        ``total_steps``: the steps the loop will run, so the board and the log show ``step / total`` and an ETA."""
         from gdwm.training import fit
 
-        return fit(self, loop, dict(loop_config or {}))
+        return fit(self, loop, dict(loop_config or {}), total_steps)

@@ -28,7 +28,7 @@ from gdwm.plan import (
     resolve_seeds,
 )
 from gdwm.runner import LaunchSummary, Layout, launch
-from gdwm.term import console
+from gdwm.term import console, verbosity
 
 SweepError = PlanError
 """A sweep that cannot launch (exit 2): the message names the sweep, the row and the key."""
@@ -97,7 +97,7 @@ def run_sweep(cfg: DictConfig, argv: list[str], dry_run: bool = False) -> Launch
         print_capacity_plan(cfg, trials, runs, durations_file(argv))
         return LaunchSummary(naive=sum(len(t.order) for t in trials))
     layout = Layout(sweep, f"sweep:{sweep.name}", trials[0].pipe.name)
-    return launch(cfg, rows, trials, layout)
+    return launch(cfg, rows, trials, layout, live=bool(cfg.run.live), verbosity=verbosity(argv))
 
 
 def _stage_runs(cfg: DictConfig) -> list[dict]:

@@ -22,5 +22,14 @@ class RedactingConsole(Console):
         super().print(*(redact(o) if isinstance(o, str) else o for o in objects), **kwargs)
 
 
+QUIET, NORMAL, VERBOSE = 0, 1, 2
+"""Verbosity of a launch's progress output (``--quiet``: failures only; ``--verbose``: starts and scenes too)."""
+
+
+def verbosity(argv: list[str]) -> int:
+    """``--quiet`` / ``--verbose`` of a launch command."""
+    return QUIET if "--quiet" in argv else VERBOSE if "--verbose" in argv else NORMAL
+
+
 console = RedactingConsole(highlight=False, width=_width(sys.stdout))
 err_console = RedactingConsole(stderr=True, highlight=False, soft_wrap=True)

@@ -75,6 +75,10 @@ class TrainSession:
     checkpoint_every: int
     key: str = ""
     """The stage's cache key: every checkpoint's manifest names it, and only checkpoints naming it are resumed."""
+    progress: Any = None
+    """The stage's ``gdwm.progress.Reporter`` (None outside a launch): rank 0's ``report`` sends each step to it."""
+    total_steps: int | None = None
+    """Steps the loop runs (``ctx.train(..., total_steps=N)``), shown as ``step / total`` with an ETA."""
 
     @property
     def rank(self) -> int:
@@ -125,6 +129,9 @@ class TrainSession:
         metrics = {k: float(v) for k, v in metrics.items()}
         if self.rank == 0 and self.tracker is not None:
             self.tracker.log_metrics(metrics, step=step)
+        if self.rank == 0 and self.progress is not None:
+            loss = metrics.get("loss", next((v for k, v in metrics.items() if "loss" in k), None))
+            self.progress.step(step + 1, self.total_steps, loss)
         if state is None:
             ray.train.report({**metrics, "step": step})
             return
@@ -312,13 +319,15 @@ def _worker_entry(payload: dict) -> None:
             payload["local_ckpt_dir"],
             payload["checkpoint_every"],
             payload.get("key", ""),
+            payload.get("progress"),
+            payload.get("total_steps"),
         )
     )
     if payload.get("tracker") is not None and ray.train.get_context().get_world_rank() == 0:
         payload["tracker"].flush()
 
 
-def fit(ctx, loop: Callable[[TrainSession], None], loop_config: dict) -> TrainResult:
+def fit(ctx, loop: Callable[[TrainSession], None], loop_config: dict, total_steps: int | None = None) -> TrainResult:
     res = ctx.resources
     workers = int(res.get("num_workers", 1))
     gpus = float(res.get("num_gpus", 0))
@@ -334,6 +343,8 @@ def fit(ctx, loop: Callable[[TrainSession], None], loop_config: dict) -> TrainRe
         "seed": ctx.seed or 0,
         "num_cpus": float(res.get("num_cpus", 1)),
         "deterministic": ctx.deterministic,
+        "progress": ctx.progress_sink,
+        "total_steps": total_steps,
     }
     scaling = ScalingConfig(
         num_workers=workers,

@@ -2,7 +2,8 @@
 
 GDWM_TEST_DIR      every execution appends "<stage> <scene>" to executions.log here
 GDWM_TEST_KILL     "stage:scene" (or "stage:step=N" for training) — SIGKILL the worker once (marker file)
-GDWM_TEST_FAIL     "stage:scene" — raise ValueError in that scene ("stage:seed=N": in that trial seed's execution)
+GDWM_TEST_FAIL     "stage:scene" — raise ValueError in that scene ("stage:seed=N": in that trial seed's execution;
+                   "reconstruct:setup": its actors' setup raises KeyError, as a missing environment variable does)
 GDWM_TEST_BLOCK    "stage" or "stage:step=N" — wait until GDWM_TEST_DIR/release exists (a test kills the driver)
 GDWM_TEST_HOG      "stage:scene" — fill memory until Ray's OOM killer ends the worker (up to 12 GB)
 GDWM_TEST_FILL     "stage:PATH" — the stage fills the disk of PATH: writes PATH until no space is left, and leaves it
@@ -91,6 +92,8 @@ def _setup(cfg: dict) -> dict:
     # Stands in for a heavy model: counts how often actors load it.
     with open(_test_dir() / "setups.log", "a") as f:
         f.write(f"{os.getpid()}\n")
+    if os.environ.get("GDWM_TEST_FAIL") == "reconstruct:setup":
+        os.environ["GDWM_TEST_MISSING_VARIABLE"]  # raises KeyError, as a stage missing its setting does
     return {"loaded_at": time.time()}
 
 
@@ -135,7 +138,7 @@ def _train_loop(s) -> None:
 def _train_stage(ctx: StageContext, steps: int, target: float) -> None:
     _record(ctx)
     _inject(ctx)
-    result = ctx.train(_train_loop, {"steps": steps, "target": target, "stage": ctx.name})
+    result = ctx.train(_train_loop, {"steps": steps, "target": target, "stage": ctx.name}, total_steps=steps)
     torch.save({"w": result.state["w"]}, ctx.out_dir / "weights.pt")
 
 

@@ -56,4 +56,4 @@ def test_report_renders_table_and_loads_every_plot(report):
     assert "(Welch's t-test over seeds, α = 0.05)" in legend and "(n=k): k of 3 seeds finished." in legend
     assert len(images) == 4  # radar, bars, deltas, training curves
     assert all(complete and w > 0 and h > 0 for complete, w, h in images), images
-    assert all(href.startswith("http://127.0.0.1:5000/#/experiments/") for href in links) and len(links) == 6
+    assert all(href.startswith("http://127.0.0.1:5001/#/experiments/") for href in links) and len(links) == 6

@@ -55,7 +55,7 @@ def test_shared_stages_run_exactly_once(swept):
 def test_one_parent_a_run_per_row_and_a_child_per_trial(swept):
     (parent,) = swept.runs("sweep")
     assert parent.info.status == "FINISHED" and parent.data.tags["gdwm.sweep"] == "toy_ablation"
-    assert parent.data.metrics["stage_executions"] == 9 and parent.data.metrics["trials"] == 3
+    assert parent.data.tags["gdwm.stage_executions"] == "9" and parent.data.tags["gdwm.trials"] == "3"
     rows = {r.data.tags["gdwm.row"]: r for r in swept.runs("row")}
     assert sorted(rows) == ["rank 2", "rank 4", "rank 8"]
     assert {r.data.tags["mlflow.parentRunId"] for r in rows.values()} == {parent.info.run_id}
@@ -67,8 +67,9 @@ def test_one_parent_a_run_per_row_and_a_child_per_trial(swept):
     assert {t.info.status for t in trials.values()} | {r.info.status for r in rows.values()} == {"FINISHED"}
     assert {t.data.tags["gdwm.seed"] for t in trials.values()} == {"0"}
     # one seed: the row's aggregate is that seed's value, with n = 1 and no std
-    assert rows["rank 8"].data.metrics["acc"] == 96.0 and rows["rank 8"].data.metrics["n/acc"] == 1.0
-    assert "std/acc" not in rows["rank 8"].data.metrics
+    assert rows["rank 8"].data.metrics["acc"] == 96.0 and rows["rank 8"].data.tags["gdwm.n.acc"] == "1"
+    assert "acc/std" not in rows["rank 8"].data.metrics and "n/acc" not in rows["rank 8"].data.metrics
+    assert rows["rank 8"].data.params["factor.Rank"] == "8"
     assert trials["rank 8"].data.tags["gdwm.factor.Rank"] == "8"
     assert trials["rank 8"].data.params["stage.toy_lora.rank"] == "8"
     # the toy evaluate_qa sums lora weights that grow by `rank` per step (3 steps, 4 dims)

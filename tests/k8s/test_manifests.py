@@ -520,6 +520,30 @@ def test_mlflow_server_auth_and_network_policy(objs, tmp_path, monkeypatch):
             assert client_label.items() <= template["metadata"]["labels"].items(), where
 
 
+def test_dashboard_service_behind_mlflow_basic_auth(objs, monkeypatch):
+    """The dashboard's Deployment runs `gdwm ui` on the server store with logins checked by the MLflow server, its
+    Service selects it, and its arguments compose (exit 2 before anything would serve otherwise)."""
+    pod = one(objs, "Deployment", "gdwm-dashboard")["spec"]["template"]
+    (container,) = pod["spec"]["containers"]
+    assert container["command"] == ["gdwm", "ui"]
+    args = container["args"]
+    assert {"tracking=server", "ui.auth=mlflow", "ui.host=0.0.0.0", "ui.port=8080"} <= set(args)
+    secret_env = {e["name"]: e["valueFrom"]["secretKeyRef"] for e in container["env"] if "valueFrom" in e}
+    assert secret_env["MLFLOW_TRACKING_USERNAME"] == {"name": "gdwm-mlflow-client", "key": "username"}
+    assert secret_env["MLFLOW_TRACKING_PASSWORD"] == {"name": "gdwm-mlflow-client", "key": "password"}
+    service = one(objs, "Service", "gdwm-dashboard")
+    assert service["spec"]["selector"].items() <= pod["metadata"]["labels"].items()
+    assert service["spec"]["ports"][0]["targetPort"] == "http"
+    assert container["readinessProbe"]["httpGet"]["path"] == "/health"
+    policy = one(objs, "NetworkPolicy", "gdwm-dashboard")
+    assert policy["spec"]["podSelector"]["matchLabels"].items() <= pod["metadata"]["labels"].items()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", one(objs, "ConfigMap", "gdwm-env")["data"]["MLFLOW_TRACKING_URI"])
+    from gdwm.config import load_config
+
+    cfg = load_config(args)
+    assert (cfg.tracking.uri, str(cfg.ui.auth), cfg.ui.port) == ("http://gdwm-mlflow:5000", "mlflow", 8080)
+
+
 # ---------------------------------------------------------------- the image
 
 

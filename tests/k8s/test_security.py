@@ -247,12 +247,21 @@ def test_ray_pods_admit_their_cluster_and_the_head_its_clients(objs):
         assert not admits(objs, worker, labels_of(objs, f"{job}/submitter") if job.startswith("RayJob/") else {}, 8265)
 
 
-def test_mlflow_admits_only_ray_pods(objs):
+def test_mlflow_admits_only_ray_pods_and_the_dashboard(objs):
     mlflow = labels_of(objs, "Deployment/gdwm-mlflow")
     for where, template in pod_templates(objs):
         labels = template.get("metadata", {}).get("labels", {})
-        assert admits(objs, mlflow, labels, 5000) is is_ray_node(where), where
+        assert admits(objs, mlflow, labels, 5000) is (is_ray_node(where) or where == "Deployment/gdwm-dashboard"), where
     assert not admits(objs, mlflow, {"app": "notebook"}, 5000)
+
+
+def test_the_dashboard_admits_only_the_ingress_controller(objs):
+    dashboard = labels_of(objs, "Deployment/gdwm-dashboard")
+    for where, template in pod_templates(objs):
+        assert not admits(objs, dashboard, template.get("metadata", {}).get("labels", {}), 8080), where
+    assert not admits(objs, dashboard, {"app": "notebook"}, 8080)
+    assert admits(objs, dashboard, {"app.kubernetes.io/name": "ingress-nginx"}, 8080, namespace="ingress-nginx")
+    assert not admits(objs, dashboard, {"app.kubernetes.io/name": "ingress-nginx"}, 5000, namespace="ingress-nginx")
 
 
 def test_postgres_and_minio_admit_only_their_clients():

@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from gdwm.compare.layout import CompareArgs, Format, LayoutConfig
+from gdwm.board import resampling_progress
+from gdwm.compare.layout import CompareArgs, Direction, Format, LayoutConfig
 from gdwm.compare.render import to_csv, to_latex, to_markdown, to_rich
-from gdwm.compare.runs import SelectionError, select, training_curves
+from gdwm.compare.runs import Selection, SelectionError, select, training_curves
 from gdwm.compare.samples import load_samples
 from gdwm.compare.stats import Settings
-from gdwm.compare.table import build_table
+from gdwm.compare.table import Table, build_table
 from gdwm.config import sqlite_path, ui_url
 from gdwm.errors import CommandError
 from gdwm.names import check_name
@@ -38,34 +41,36 @@ def settings(args: CompareArgs) -> Settings:
     return Settings(args.alpha, args.confidence, args.resamples, args.stats_seed, args.bootstrap_method)
 
 
-def compare(cfg: DictConfig) -> int:
-    """Exit 0 with the outputs written; 1 (with a message naming the selector) when nothing matches."""
+@dataclass
+class Comparison:
+    """What ``gdwm compare`` shows: the selection, its table and the row the deltas are taken against."""
 
+    selection: Selection
+    table: Table
+    base: int
+
+
+def comparison(cfg: DictConfig, backend: TrackingBackend, warn: Callable[[str], None]) -> Comparison:
+    """Select the rows ``cfg.args`` names, read their samples and build the table: the one way every surface gets it
+    (this command, the dashboard's sweep page). Reads the store, writes nothing; ``warn`` gets each warning."""
     args: CompareArgs = OmegaConf.to_object(cfg.args)
     layout: LayoutConfig = OmegaConf.to_object(cfg.compare)
     try:
         stats = settings(args)
     except ValueError as e:
         raise CommandError(str(e)) from e
-    db = sqlite_path(cfg.tracking.uri)
-    if db is not None and not Path(db).is_file():
-        raise CommandError(f"no MLflow store at {db} (tracking.uri); run `gdwm run` first or set workdir=...")
-    backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
     try:
         sel = select(backend, args.sweep, args.runs, args.filter, args.factors)
     except SelectionError as e:
         raise CommandError(str(e)) from e
     with tempfile.TemporaryDirectory(prefix="gdwm-compare-") as tmp:  # the tables are read into memory
         for problem in load_samples(backend, sel.rows, Path(tmp)):
-            err_console.print(f"gdwm compare: warning: no per-sample statistics for {problem}", markup=False)
+            warn(f"no per-sample statistics for {problem}")
     table = build_table(sel.rows, layout, stats)
     if not any(table.value(i, c.metric) is not None for i in range(len(table.rows)) for c in table.columns):
         logged = sorted({m for r in sel.rows for t in r.trials for m in t.metrics})
-        err_console.print(
-            f"gdwm compare: warning: the rows logged no metric of layout '{layout.name}' (pick one with "
-            f"compare=NAME); they logged: {', '.join(logged) or 'nothing'}",
-            markup=False,
-        )
+        warn(f"the rows logged no metric of layout '{layout.name}' (pick one with compare=NAME); they logged: "
+             f"{', '.join(logged) or 'nothing'}")  # fmt: skip
     if args.baseline:
         try:
             base = table.index_of(args.baseline)
@@ -74,6 +79,27 @@ def compare(cfg: DictConfig) -> int:
             raise CommandError(f"args.baseline={args.baseline}: no such row (rows: {labels})") from None
     else:
         base = next((i for i, r in enumerate(table.rows) if not r.failed), 0)
+    return Comparison(sel, table, base)
+
+
+def compare(cfg: DictConfig) -> int:
+    """Exit 0 with the outputs written; 1 (with a message naming the selector) when nothing matches."""
+
+    args: CompareArgs = OmegaConf.to_object(cfg.args)
+    layout: LayoutConfig = OmegaConf.to_object(cfg.compare)
+    db = sqlite_path(cfg.tracking.uri)
+    if db is not None and not Path(db).is_file():
+        raise CommandError(f"no MLflow store at {db} (tracking.uri); run `gdwm run` first or set workdir=...")
+    backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
+
+    def warn(line: str) -> None:
+        err_console.print(f"gdwm compare: warning: {line}", markup=False)
+
+    with resampling_progress("gdwm compare"):
+        result = comparison(cfg, backend, warn)
+    sel, table, base = result.selection, result.table, result.base
+    if sel.sweep_run_id:
+        _log_statistics(backend, table, sel.sweep_run_id)
 
     if Format.terminal in args.formats:
         console.print(to_rich(table))
@@ -91,6 +117,39 @@ def compare(cfg: DictConfig) -> int:
             backend.log_artifact(sel.sweep_run_id, str(path), f"compare/{layout.name}")
             console.print(f"  logged to sweep run {sel.sweep_run_id} as compare/{layout.name}/{path.name}")
     return 0
+
+
+def _log_statistics(backend: TrackingBackend, table, sweep_run_id: str) -> None:
+    """Each row's statistics as metrics of its run (``<metric>/std``, ``<metric>/ci_low``, ``<metric>/ci_high``:
+    MLflow's compare view can plot and sort them) and the table, in Markdown, as the sweep run's description."""
+    for i, row in enumerate(table.rows):
+        stats = {}
+        for c in table.columns:
+            cell = table.cell(i, c.metric)
+            if cell is None:
+                continue
+            for name, v in (("std", cell.std), ("ci_low", cell.ci_low), ("ci_high", cell.ci_high)):
+                if v is not None and v == v:
+                    stats[f"{c.metric}/{name}"] = v
+        if stats and row.run_id:
+            backend.log_metrics(row.run_id, stats)
+    tags = {"mlflow.note.content": to_markdown(table)}
+    key = key_metric(table)
+    if key is not None:  # gdwm status shows the best row, gdwm zoo list each version's value
+        col = next(c for c in table.columns if c.metric == key)
+        live = {i: table.value(i, key) for i in range(len(table.rows)) if not table.rows[i].failed}
+        live = {i: v for i, v in live.items() if v is not None}
+        best = (max if col.direction is Direction.higher else min)(live, key=live.__getitem__)
+        tags |= {"gdwm.key_metric": key, "gdwm.best_row": table.rows[best].label, "gdwm.best_value": f"{live[best]}"}
+    backend.set_tags(sweep_run_id, tags)
+
+
+def key_metric(table) -> str | None:
+    """The table's key metric: its last column any live row has a value in (a paper table's last is its Avg.)."""
+    for c in reversed(table.columns):
+        if any(table.value(i, c.metric) is not None for i, r in enumerate(table.rows) if not r.failed):
+            return c.metric
+    return None
 
 
 def _render(fmt: Format, table, base: int, backend: TrackingBackend, cfg: DictConfig, selector: str) -> str:

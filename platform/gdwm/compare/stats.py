@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable, Collection, Hashable, Mapping, Sequence
+from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 from itertools import combinations
 from typing import Any
@@ -29,6 +30,8 @@ from gdwm.compare.layout import Direction
 from gdwm.compare.rounding import round_half_up
 
 BEST, SECOND = "best", "second"
+ON_RESAMPLE: ContextVar[Callable[[str, int, int], None] | None] = ContextVar("gdwm_on_resample", default=None)
+"""Called as ``hook(stage, resamples scored so far, resamples planned)`` while a bootstrap runs (progress output)."""
 
 
 @dataclass(frozen=True)
@@ -227,7 +230,13 @@ def paired_bootstrap(
     if not data:
         return None
 
+    calls = [0]
+    hook = ON_RESAMPLE.get()
+
     def statistic(*groups: np.ndarray) -> np.ndarray:
+        if hook is not None:  # the launch's progress: the bootstrap is the slow part of compare and regress
+            calls[0] += 1
+            hook(stage, calls[0], settings.n_resamples)
         idx = np.concatenate([fixed, *(np.asarray(g, dtype=np.intp) for g in groups)])
         # a metric a resample leaves undefined (no parsable answer left, say) is NaN there
         outs = (score(j, idx) for j in range(len(flat)))

@@ -1,45 +1,43 @@
 """MLflow tracking: one backend class talks to MLflow; with sqlite it lives in one Ray actor, the single
 writer; the driver calls it through a ``TrackingClient``, stages log through a ``Tracker`` bound to their run;
-``RunGuard`` and ``reconcile`` make sure no run is left RUNNING."""
+``RunGuard`` and ``reconcile`` make sure no run is left RUNNING.
 
-from gdwm.tracking.backend import (
-    DEFAULT_SYSTEM_METRICS_INTERVAL_S,
-    STAGE_TAG,
-    Sink,
-    TrackingActor,
-    TrackingBackend,
-    open_tracking,
-)
-from gdwm.tracking.client import TrackingClient
-from gdwm.tracking.guard import RunGuard
-from gdwm.tracking.owner import (
-    OWNER_TAG,
-    RECONCILED_TAG,
-    AliveExcept,
-    owner_is_alive,
-    parse_owner,
-    process_owner,
-)
-from gdwm.tracking.params import batches, flatten_params, truncate
-from gdwm.tracking.tracker import Tracker
+Names load on first use (PEP 562): a reader that needs only ``gdwm.tracking.owner`` (``gdwm ui``) imports neither Ray
+nor MLflow through this package."""
 
-__all__ = [
-    "DEFAULT_SYSTEM_METRICS_INTERVAL_S",
-    "OWNER_TAG",
-    "RECONCILED_TAG",
-    "STAGE_TAG",
-    "AliveExcept",
-    "RunGuard",
-    "Sink",
-    "Tracker",
-    "TrackingActor",
-    "TrackingBackend",
-    "TrackingClient",
-    "batches",
-    "flatten_params",
-    "open_tracking",
-    "owner_is_alive",
-    "parse_owner",
-    "process_owner",
-    "truncate",
-]
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_WHERE = {
+    "backend": (
+        "DEFAULT_SYSTEM_METRICS_INTERVAL_S",
+        "STAGE_TAG",
+        "Sink",
+        "TrackingActor",
+        "TrackingBackend",
+        "open_tracking",
+    ),
+    "client": ("TrackingClient",),
+    "guard": ("RunGuard",),
+    "owner": ("OWNER_TAG", "RECONCILED_TAG", "AliveExcept", "owner_is_alive", "parse_owner", "process_owner"),
+    "params": ("batches", "flatten_params", "truncate"),
+    "tracker": ("Tracker",),
+}
+_MODULE = {name: module for module, names in _WHERE.items() for name in names}
+
+__all__ = sorted(_MODULE)
+
+
+def __getattr__(name: str) -> Any:
+    module = _MODULE.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return __all__

@@ -34,12 +34,15 @@ from gdwm.tracking.params import (
     flatten_params,
     truncate,
 )
+from gdwm.tracking.relocate import relocate_store
 from gdwm.tracking.storelock import DEFAULT_TIMEOUT_S, StoreLock, StoreLockTimeout
 from gdwm.zoo import registry as zoo
 
 log = logging.getLogger(__name__)
 
 TERMINAL = ("FINISHED", "FAILED", "KILLED")
+EXPERIMENT_KIND, TRAINING = "mlflow.experimentKind", "custom_model_development"
+"""MLflow 3's UI opens an experiment of this kind on its runs (not on its GenAI traces)."""
 STAGE_TAG = "gdwm.stage"
 DEFAULT_SYSTEM_METRICS_INTERVAL_S = 10.0
 _PAGE = 1000
@@ -101,15 +104,21 @@ class TrackingBackend:
         self._connect()
 
     def _connect(self) -> None:
+        if self.artifact_location:  # a workdir copied or moved since: its store points at itself first
+            relocate_store(self.uri, self.artifact_location)
         self.client = MlflowClient(self.uri)
         self._monitors: dict[str, SystemMetricsMonitor] = {}
         try:
             exp = self.client.get_experiment_by_name(self.experiment)
             if exp is None:
-                self.experiment_id = self.client.create_experiment(self.experiment, self.artifact_location)
+                self.experiment_id = self.client.create_experiment(
+                    self.experiment, self.artifact_location, tags={EXPERIMENT_KIND: TRAINING}
+                )
                 return
             if exp.lifecycle_stage == "deleted":
                 self.client.restore_experiment(exp.experiment_id)
+            if EXPERIMENT_KIND not in exp.tags:
+                self.client.set_experiment_tag(exp.experiment_id, EXPERIMENT_KIND, TRAINING)
         except MlflowException as e:
             refused = _refused(self.uri, self.experiment, e)
             if refused is None:

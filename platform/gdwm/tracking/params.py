@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 from mlflow.utils.validation import (
@@ -24,6 +26,7 @@ __all__ = [
     "MAX_TAG_VAL_LENGTH",
     "batches",
     "flatten_params",
+    "relative_paths",
     "truncate",
 ]
 
@@ -60,6 +63,22 @@ def flatten_params(cfg: Mapping | DictConfig, prefix: str = "") -> dict[str, str
         else:
             text = str(value)
         out[full] = truncate(redact(text), MAX_PARAM_VAL_LENGTH)
+    return out
+
+
+def relative_paths(params: Mapping[str, str], root: str | Path) -> dict[str, str]:
+    """Flattened params with every absolute path (plain, ``file://`` or ``sqlite:///``) written relative to ``root``
+    (the workdir): a run's params describe the experiment, not the machine or folder it ran in, and stay true for a
+    copied workdir."""
+    root = os.path.abspath(root)
+    out = {}
+    for k, v in params.items():
+        for scheme in ("sqlite:///", "file://", ""):
+            path = v.removeprefix(scheme) if v.startswith(scheme) else None
+            if path is not None and path.startswith("/") and "\n" not in path and " " not in path:
+                v = scheme + os.path.relpath(path, root)
+                break
+        out[k] = v
     return out
 
 

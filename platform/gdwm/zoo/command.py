@@ -30,8 +30,6 @@ from gdwm.zoo.registry import (
     versions,
 )
 
-SHOWN_METRICS = 4
-
 
 def _client(cfg: DictConfig) -> MlflowClient:
     uri = cfg.tracking.uri
@@ -61,35 +59,52 @@ def _created(ms: int) -> str:
     return time.strftime("%Y-%m-%d %H:%M", time.localtime(ms / 1000))
 
 
-def _metrics(tags: dict[str, str]) -> str:
-    found = sorted((k.removeprefix(TAG_METRIC), v) for k, v in tags.items() if k.startswith(TAG_METRIC))
-    shown = [f"{k}={float(v):.4g}" for k, v in found[:SHOWN_METRICS]]
-    return " ".join(shown) + (f" (+{len(found) - SHOWN_METRICS})" if len(found) > SHOWN_METRICS else "")
+def _key_metrics(client: MlflowClient, experiment: str) -> dict[str, str]:
+    """Sweep name -> its table's key metric (``gdwm.key_metric``, recorded by the sweep's ``gdwm compare``)."""
+    exp = client.get_experiment_by_name(experiment)
+    if exp is None:
+        return {}
+    runs = client.search_runs([exp.experiment_id], "tags.`gdwm.kind` = 'sweep'", max_results=1000)
+    return {r.data.tags["gdwm.sweep"]: r.data.tags["gdwm.key_metric"] for r in runs
+            if "gdwm.key_metric" in r.data.tags and "gdwm.sweep" in r.data.tags}  # fmt: skip
+
+
+def _key_value(tags: dict[str, str], keys: dict[str, str]) -> str:
+    """The version's value of its sweep's key metric; without one, its ``*avg*`` metric, else its first."""
+    found = {k.removeprefix(TAG_METRIC): v for k, v in tags.items() if k.startswith(TAG_METRIC)}
+    key = keys.get(tags.get("gdwm.sweep", ""))
+    if key is None or key not in found:
+        key = next((k for k in sorted(found) if "avg" in k), next(iter(sorted(found)), None))
+    return "" if key is None else f"{key}={float(found[key]):.4g}"
 
 
 def zoo_list(cfg: DictConfig) -> int:
-    """One row per version: variant, aliases, producing stage and cache key, age, key metrics."""
+    """One row per version: variant, aliases, the sweep row that trained it and its value of the table's key metric,
+    producing stage and cache key, age."""
     args, client = _args(cfg, need_name=False), _client(cfg)
     models = registered(client, args.name)
     if not models:
         console.print(f"the model zoo of {cfg.tracking.uri} is empty: training stages register their components")
         return 0
+    keys = _key_metrics(client, cfg.tracking.experiment)
     t = Table(title=f"model zoo in {redact(cfg.tracking.uri)}", header_style="bold")
-    for col in ("name", "version", "variant", "aliases", "stage", "cache key", "created", "metrics"):
+    for col in ("name", "version", "variant", "aliases", "row", "key metric", "stage", "cache key", "created"):
         t.add_column(col, justify="right" if col == "version" else "left")
     for model in models:
         aliases = aliases_of(model)
         for mv in versions(client, model.name):
             tags = mv.tags
+            row = tags.get("gdwm.row", "")
             t.add_row(
                 model.name,
                 str(mv.version),
                 tags.get(TAG_VARIANT, ""),
                 ", ".join(aliases.get(int(mv.version), [])),
+                f"{tags['gdwm.sweep']}/{row}" if row and "gdwm.sweep" in tags else row,
+                _key_value(tags, keys),
                 tags.get(TAG_STAGE, ""),
                 tags.get(TAG_KEY, "")[:12],
                 _created(mv.creation_timestamp),
-                _metrics(tags),
             )
     console.print(t)
     return 0
