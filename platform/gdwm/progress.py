@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import statistics
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -57,11 +58,15 @@ def __getattr__(name: str) -> Any:
 
 class Reporter:
     """One execution's way to report (picklable: the actor handle, the stage and key). Sends are fire-and-forget;
-    step and progress events are thinned to one per ``STEP_INTERVAL_S`` (the last step always goes)."""
+    step and progress events are thinned to one per ``STEP_INTERVAL_S``: one that comes too soon is held and sent
+    when the interval ends unless a newer one replaces it (a throttle with a trailing edge), so a stage that stops
+    reporting (blocked, or in a long step) still shows the last step it reached; a final one goes at once."""
 
     def __init__(self, actor: Any, stage: str, key: str):
         self.actor, self.stage, self.key = actor, stage, key
         self._last: dict[str | None, float] = {}
+        self._held: dict[str | None, dict] = {}
+        self._lock = threading.Lock()
 
     def __getstate__(self) -> dict:
         return {"actor": self.actor, "stage": self.stage, "key": self.key}
@@ -72,23 +77,40 @@ class Reporter:
     def _send(self, **kw: Any) -> None:
         self.actor.put.remote(Event(stage=self.stage, key=self.key, **kw).to_dict())
 
-    def _due(self, what: str | None, final: bool) -> bool:
-        now = time.monotonic()
-        if not final and now - self._last.get(what, -math.inf) < STEP_INTERVAL_S:
-            return False
-        self._last[what] = now
-        return True
+    def _throttled(self, what: str, final: bool, **kw: Any) -> None:
+        with self._lock:
+            now = time.monotonic()
+            wait = self._last.get(what, -math.inf) + STEP_INTERVAL_S - now
+            if final or wait <= 0:
+                self._held.pop(what, None)
+                self._last[what] = now
+                self._send(**kw)
+                return
+            first = what not in self._held
+            self._held[what] = kw
+        if first:  # one timer per held slot; later events only replace what it will send
+            timer = threading.Timer(wait, self._flush, args=(what,))
+            timer.daemon = True
+            timer.start()
+
+    def _flush(self, what: str) -> None:
+        with self._lock:
+            kw = self._held.pop(what, None)
+            if kw is None:
+                return
+            self._last[what] = time.monotonic()
+            self._send(**kw)
 
     def state(self, state: str, scene: str | None = None, message: str | None = None) -> None:
         self._send(kind="scene" if scene else "stage", state=state, scene=scene, message=message or None)
 
     def progress(self, scene: str | None, done: int, total: int, message: str = "") -> None:
-        if self._due(f"p:{scene}", done >= total):
-            self._send(kind="progress", scene=scene, done=int(done), total=int(total), message=message or None)
+        self._throttled(f"p:{scene}", done >= total, kind="progress", scene=scene, done=int(done), total=int(total),
+                        message=message or None)  # fmt: skip
 
     def step(self, step: int, steps: int | None, loss: float | None) -> None:
-        if self._due("step", steps is not None and step >= steps):
-            self._send(kind="step", step=int(step), steps=steps, loss=loss)
+        self._throttled("step", steps is not None and step >= steps, kind="step", step=int(step), steps=steps,
+                        loss=loss)  # fmt: skip
 
 
 @dataclass

@@ -90,8 +90,11 @@ def _block(name: str) -> None:
 
 def _setup(cfg: dict) -> dict:
     # Stands in for a heavy model: counts how often actors load it.
+    # "<pid> <actor id>": a restarted actor keeps its id in a new process, so a retried setup shows as a repeated id
+    import ray
+
     with open(_test_dir() / "setups.log", "a") as f:
-        f.write(f"{os.getpid()}\n")
+        f.write(f"{os.getpid()} {ray.get_runtime_context().get_actor_id()}\n")
     if os.environ.get("GDWM_TEST_FAIL") == "reconstruct:setup":
         os.environ["GDWM_TEST_MISSING_VARIABLE"]  # raises KeyError, as a stage missing its setting does
     return {"loaded_at": time.time()}

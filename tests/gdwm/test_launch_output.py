@@ -168,8 +168,10 @@ def test_a_stage_whose_setup_raises_says_one_cause_and_blocks_downstream(tmp_pat
     )
     path = Path(final.removeprefix(f"gdwm run: {cause}").split(";")[0])
     assert "KeyError: 'GDWM_TEST_MISSING_VARIABLE'" in path.read_text() and "_setup" in path.read_text()
-    # each scene actor ran setup once: 2 actors for 3 scenes, nothing retried
-    assert len((tmp_path / "setups.log").read_text().splitlines()) == 2
+    # each scene actor ran setup once, nothing retried: at most the pool's 2 actors (a loaded machine may fail the
+    # stage before the second one starts), no actor id twice (a restarted actor keeps its id in a new process)
+    actors = [line.split()[1] for line in (tmp_path / "setups.log").read_text().splitlines()]
+    assert 1 <= len(actors) <= 2 and len(set(actors)) == len(actors), actors
     (events,) = (toy.work / "logs").glob("run-toy-*/events.jsonl")
     states = {e.stage: e.state for e in read_events(events) if e.kind == "stage" and e.state != "running"}
     assert states == {"reconstruct": "failed", **dict.fromkeys(

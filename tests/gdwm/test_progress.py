@@ -171,3 +171,37 @@ def test_an_unknown_state_is_refused_naming_it():
                                                 (3720, "1 h 02 min"), (None, "?")])  # fmt: skip
 def test_duration(seconds, shown):
     assert duration(seconds) == shown
+
+
+class _Queue:
+    """What a Reporter holds of the progress actor: ``put.remote(event)``; here it records and signals."""
+
+    def __init__(self):
+        import threading
+        from types import SimpleNamespace
+
+        self.events: list[dict] = []
+        self.arrived = threading.Event()
+        self.put = SimpleNamespace(remote=self._put)
+
+    def _put(self, event: dict) -> None:
+        self.events.append(event)
+        self.arrived.set()
+
+
+def test_a_thinned_step_is_sent_when_its_interval_ends():
+    # A stage that stops reporting (blocked at step 1, or inside a long step) must still show the step it reached:
+    # step 1 comes too soon after step 0 and is held, then sent by the trailing edge, not dropped.
+    from gdwm.progress import Reporter
+
+    q = _Queue()
+    r = Reporter(q, "lora", "k" * 64)
+    r.step(0, 3, 1.0)
+    assert [e["step"] for e in q.events] == [0]
+    q.arrived.clear()
+    r.step(1, 3, 0.5)
+    assert [e["step"] for e in q.events] == [0]  # held
+    assert q.arrived.wait(timeout=30)  # the interval's end, not a fixed sleep
+    assert [(e["step"], e["loss"]) for e in q.events] == [(0, 1.0), (1, 0.5)]
+    r.step(3, 3, 0.25)  # the final step goes at once
+    assert [e["step"] for e in q.events] == [0, 1, 3]
