@@ -12,6 +12,10 @@ noise: ``tolerance: {sigma: 3}`` allows 3 standard deviations of the compared di
 over its seeds scaled to a difference of two means (``s * sqrt(1/n_baseline + 1/n_now)``). With
 ``test: bootstrap`` a worsening is a regression only if a paired bootstrap over the held-out samples (both runs'
 per-sample predictions, combined over seeds) finds it significant, beyond the tolerance.
+
+The baseline is always a measured run: a reported row (``gdwm.kind=reference``, numbers copied from a paper) named
+as ``benchmark.baseline`` is refused (exit 2). Numbers print rounded half up (``gdwm.compare.rounding``), as every
+table of gdwm does, and the suites' aggregates (Avg.) are the one average of the printed values.
 """
 
 from __future__ import annotations
@@ -29,6 +33,8 @@ from omegaconf import DictConfig, OmegaConf
 from rich.table import Table
 
 from gdwm.compare.layout import Direction
+from gdwm.compare.rounding import fmt_significant
+from gdwm.compare.runs import REFERENCE_KIND
 from gdwm.config import BenchmarkConfig, CheckTest, ConfigError, MetricCheck, load_config
 from gdwm.term import console, err_console
 
@@ -75,7 +81,7 @@ def check(
                 spread *= math.sqrt(1 / n_b + 1 / n_n)
             tol = c.sigma * spread if spread is not None else math.nan
             shown = f"{c.sigma:g}σ" + (
-                f" = {tol:.3g}" if spread is not None else " (no spread)" if b is not None else ""
+                f" = {fmt_significant(tol, 3)}" if spread is not None else " (no spread)" if b is not None else ""
             )
         else:
             tol = c.tolerance * abs(b) if (c.relative and b is not None) else float(c.tolerance)
@@ -355,6 +361,12 @@ def _baseline(backend, bench: BenchmarkConfig) -> dict | None:
             run = backend.client.get_run(bench.baseline)
         except Exception as e:
             raise RegressError(f"benchmark.baseline: no run '{bench.baseline}' in {backend.uri}") from e
+        if run.data.tags.get("gdwm.kind") == REFERENCE_KIND:
+            raise RegressError(
+                f"benchmark.baseline={bench.baseline}: a reported row (gdwm.kind={REFERENCE_KIND}, numbers copied "
+                f"from {run.data.tags.get('gdwm.source.paper') or 'a paper'}) cannot be a regression baseline; name "
+                "a measured run, or record one with --set-baseline"
+            )
         return {"run_id": run.info.run_id, "metrics": dict(run.data.metrics)}
     found = backend.search_runs(
         f"tags.`gdwm.kind` = '{KIND}' and tags.`gdwm.benchmark` = '{bench.name}' and tags.`{BASELINE_TAG}` = 'true'",
@@ -365,7 +377,11 @@ def _baseline(backend, bench: BenchmarkConfig) -> dict | None:
 
 
 def _fmt(v: float | None) -> str:
-    return "–" if v is None else f"{v:.4g}"
+    return "–" if v is None else fmt_significant(v, 4)
+
+
+def _signed(v: float) -> str:
+    return ("+" if v >= 0 else "") + fmt_significant(v, 4)
 
 
 def print_rows(bench: BenchmarkConfig, rows: list[Row], base_run: dict | None, seeds: list[int]) -> None:
@@ -376,7 +392,7 @@ def print_rows(bench: BenchmarkConfig, rows: list[Row], base_run: dict | None, s
         t.add_column(col)
     style = {"REGRESSION": "red", "missing": "red", "no spread": "red", "untestable": "red", "improved": "green"}
     for r in rows:
-        d = "–" if r.delta is None else f"{r.delta:+.4g}"
+        d = "–" if r.delta is None else _signed(r.delta)
         v = f"[{style[r.verdict]}]{r.verdict}[/{style[r.verdict]}]" if r.verdict in style else r.verdict
         t.add_row(r.metric, _fmt(r.baseline), _fmt(r.now), d, r.tolerance, v)
     console.print(t)
@@ -385,7 +401,7 @@ def print_rows(bench: BenchmarkConfig, rows: list[Row], base_run: dict | None, s
 def markdown(rows: list[Row]) -> str:
     lines = ["| metric | baseline | now | delta | tolerance | verdict |", "|---|---|---|---|---|---|"]
     for r in rows:
-        d = "–" if r.delta is None else f"{r.delta:+.4g}"
+        d = "–" if r.delta is None else _signed(r.delta)
         lines.append(f"| {r.metric} | {_fmt(r.baseline)} | {_fmt(r.now)} | {d} | {r.tolerance} | {r.verdict} |")
     return "\n".join(lines) + "\n"
 

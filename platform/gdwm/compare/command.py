@@ -1,4 +1,6 @@
-"""``gdwm compare``: select runs, print the table, write the chosen formats, log them to the sweep's parent run."""
+"""``gdwm compare``: select runs (and read ``compare.references``' reported rows), print the table, write the chosen
+formats, log them to the sweep's parent run. A references file alone, without a store or selector, makes a table of
+reported rows. Exit 2 for a bad references file (naming file, line and field), 1 for a selection that fails."""
 
 from __future__ import annotations
 
@@ -8,11 +10,13 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from gdwm.compare.layout import CompareArgs, Format, LayoutConfig
+from gdwm.compare.references import Reference, ReferencesError, load_references, log_references, merge
 from gdwm.compare.render import to_csv, to_latex, to_markdown, to_rich
-from gdwm.compare.runs import SelectionError, select, training_curves
+from gdwm.compare.rounding import fmt as fmt_value
+from gdwm.compare.runs import Selection, SelectionError, select, training_curves
 from gdwm.compare.samples import load_samples
 from gdwm.compare.stats import Settings
-from gdwm.compare.table import build_table
+from gdwm.compare.table import Table, build_table
 from gdwm.config import sqlite_path, ui_url
 from gdwm.errors import CommandError
 from gdwm.term import console, err_console
@@ -33,11 +37,14 @@ def settings(args: CompareArgs) -> Settings:
         raise ValueError(f"args.resamples={args.resamples}: the bootstrap needs at least 2 resamples")
     if args.bootstrap_method not in METHODS:
         raise ValueError(f"args.bootstrap_method={args.bootstrap_method}: must be one of {', '.join(METHODS)}")
-    return Settings(args.alpha, args.confidence, args.resamples, args.stats_seed, args.bootstrap_method)
+    return Settings(
+        args.alpha, args.confidence, args.resamples, args.stats_seed, args.bootstrap_method, args.correction
+    )
 
 
 def compare(cfg: DictConfig) -> int:
-    """Exit 0 with the outputs written; 1 (with a message naming the selector) when nothing matches."""
+    """Exit 0 with the outputs written; 1 (with a message naming the selector) when nothing matches; 2 for a bad
+    references file."""
 
     args: CompareArgs = OmegaConf.to_object(cfg.args)
     layout: LayoutConfig = OmegaConf.to_object(cfg.compare)
@@ -45,18 +52,42 @@ def compare(cfg: DictConfig) -> int:
         stats = settings(args)
     except ValueError as e:
         raise CommandError(str(e)) from e
-    db = sqlite_path(cfg.tracking.uri)
-    if db is not None and not Path(db).is_file():
-        raise CommandError(f"no MLflow store at {db} (tracking.uri); run `gdwm run` first or set workdir=...")
-    backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
     try:
-        sel = select(backend, args.sweep, args.runs, args.filter, args.factors)
-    except SelectionError as e:
-        raise CommandError(str(e)) from e
-    with tempfile.TemporaryDirectory(prefix="gdwm-compare-") as tmp:  # the tables are read into memory
-        for problem in load_samples(backend, sel.rows, Path(tmp)):
-            err_console.print(f"gdwm compare: warning: no per-sample statistics for {problem}", markup=False)
-    table = build_table(sel.rows, layout, stats)
+        refs = load_references(layout.references, layout) if layout.references else []
+    except ReferencesError as e:
+        err_console.print(f"gdwm compare: {e}", markup=False)
+        return 2
+    selected = args.sweep or args.runs or args.filter
+    db = sqlite_path(cfg.tracking.uri)
+    backend = None
+    if db is not None and not Path(db).is_file():
+        if not refs or selected:
+            raise CommandError(f"no MLflow store at {db} (tracking.uri); run `gdwm run` first or set workdir=...")
+        sel = Selection("references", f"compare.references={layout.references}", [])
+    else:
+        backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
+        try:
+            sel = select(backend, args.sweep, args.runs, args.filter, args.factors)
+        except SelectionError as e:
+            if not refs or selected:
+                raise CommandError(str(e)) from e
+            sel = Selection("references", f"compare.references={layout.references}", [])
+    try:
+        rows = merge(refs, sel.rows, sel.selector)
+    except ReferencesError as e:
+        err_console.print(f"gdwm compare: {e}", markup=False)
+        return 2
+    if backend is not None:
+        with tempfile.TemporaryDirectory(prefix="gdwm-compare-") as tmp:  # the tables are read into memory
+            for problem in load_samples(backend, sel.rows, Path(tmp)):
+                err_console.print(f"gdwm compare: warning: no per-sample statistics for {problem}", markup=False)
+        if refs and args.log_references:
+            ids = log_references(backend, refs, sel.sweep_run_id, sel.rows)
+            where = f"under sweep run {sel.sweep_run_id}" if sel.sweep_run_id else f"in experiment {backend.experiment}"
+            console.print(f"logged {len(ids)} reported rows as runs tagged gdwm.kind=reference {where}")
+    table = build_table(rows, layout, stats)
+    for problem in published_averages(table, refs):
+        err_console.print(f"gdwm compare: warning: {problem}", markup=False)
     if not any(table.value(i, c.metric) is not None for i in range(len(table.rows)) for c in table.columns):
         logged = sorted({m for r in sel.rows for t in r.trials for m in t.metrics})
         err_console.print(
@@ -70,24 +101,43 @@ def compare(cfg: DictConfig) -> int:
         except KeyError:
             labels = ", ".join(r.label for r in table.rows)
             raise CommandError(f"args.baseline={args.baseline}: no such row (rows: {labels})") from None
-    else:
-        base = next((i for i, r in enumerate(table.rows) if not r.failed), 0)
+    else:  # the first own row that did not fail (a reported row only when asked for by name)
+        base = next((i for i, r in enumerate(table.rows) if not r.failed and not r.reported), 0)
 
     if Format.terminal in args.formats:
-        console.print(to_rich(table))
+        console.print(to_rich(table, chars=not console.is_terminal))
     out = Path(args.out or Path(cfg.workdir) / "reports" / sel.name).resolve()
     for fmt in (f for f in args.formats if f in SUFFIX):
         path = out / f"{layout.name}.{SUFFIX[fmt]}"
         out.mkdir(parents=True, exist_ok=True)
         path.write_text(_render(fmt, table, base, backend, cfg, sel.selector), encoding="utf-8")
         console.print(f"wrote {path}")
-        if sel.sweep_run_id:  # this process is the only writer of the store while it runs
+        if sel.sweep_run_id and backend is not None:  # this process is the only writer of the store while it runs
             backend.log_artifact(sel.sweep_run_id, str(path), f"compare/{layout.name}")
             console.print(f"  logged to sweep run {sel.sweep_run_id} as compare/{layout.name}/{path.name}")
     return 0
 
 
-def _render(fmt: Format, table, base: int, backend: TrackingBackend, cfg: DictConfig, selector: str) -> str:
+def published_averages(table: Table, refs: list[Reference]) -> list[str]:
+    """Where a references file gives an aggregate (Avg.) that is not the mean of the row's printed values: the
+    table shows the mean (the one average every row gets); the file's line says where to look for a typo."""
+    out = []
+    by_label = {r.label: r for r in refs}
+    for i, row in enumerate(table.rows):
+        ref = by_label.get(row.label) if row.reported else None
+        for c in (c for c in table.columns if c.mean_of and ref is not None and c.metric in ref.values):
+            cell = table.cell(i, c.metric)
+            given = fmt_value(ref.values[c.metric], table.precision)
+            if cell is not None and table.fmt(cell.mean) != given:
+                mean = table.fmt(cell.mean)
+                out.append(
+                    f"{ref.where(c.metric)}: {c.header} {given} is not the mean of the row's printed values "
+                    f"({mean}); the table shows {mean}"
+                )
+    return out
+
+
+def _render(fmt: Format, table, base: int, backend: TrackingBackend | None, cfg: DictConfig, selector: str) -> str:
     if fmt is Format.markdown:
         return to_markdown(table)
     if fmt is Format.latex:
@@ -96,5 +146,5 @@ def _render(fmt: Format, table, base: int, backend: TrackingBackend, cfg: DictCo
         return to_csv(table)
     from gdwm.compare.report import html_report  # matplotlib only when a report is asked for
 
-    curves = {r.run_id: training_curves(backend, r) for r in table.rows}
+    curves = {r.run_id: training_curves(backend, r) for r in table.rows if r.run_id and backend is not None}
     return html_report(table, base, curves, ui_url(cfg), selector, cfg.tracking.uri)
