@@ -206,7 +206,7 @@ def test_latex_is_structurally_valid_booktabs(table):
     lines = tex.splitlines()
     assert lines[1] == f"% Legend: {LEGEND}"
     assert lines[-1] == "% \\caption{Mixed. " + tex_escape(LEGEND) + "}"
-    assert r"Welch's t-test over seeds, $\alpha$ = 0.05). Cells: mean $\pm$ std over n seeds" in lines[-1]
+    assert r"3--6 pairs; $\alpha$ = 0.05). Cells: mean $\pm$ std over n seeds" in lines[-1]
 
 
 def test_tex_escape_special_characters():

@@ -8,6 +8,7 @@ import tempfile
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
+from rich.measure import Measurement
 
 from gdwm.compare.layout import CompareArgs, Format, LayoutConfig
 from gdwm.compare.references import Reference, ReferencesError, load_references, log_references, merge
@@ -19,7 +20,7 @@ from gdwm.compare.stats import Settings
 from gdwm.compare.table import Table, build_table
 from gdwm.config import sqlite_path, ui_url
 from gdwm.errors import CommandError
-from gdwm.term import console, err_console
+from gdwm.term import RedactingConsole, console, err_console
 from gdwm.tracking import TrackingBackend
 
 METHODS = ("BCa", "percentile", "basic")
@@ -105,7 +106,7 @@ def compare(cfg: DictConfig) -> int:
         base = next((i for i, r in enumerate(table.rows) if not r.failed and not r.reported), 0)
 
     if Format.terminal in args.formats:
-        console.print(to_rich(table, chars=not console.is_terminal))
+        print_table(table)
     out = Path(args.out or Path(cfg.workdir) / "reports" / sel.name).resolve()
     for fmt in (f for f in args.formats if f in SUFFIX):
         path = out / f"{layout.name}.{SUFFIX[fmt]}"
@@ -116,6 +117,22 @@ def compare(cfg: DictConfig) -> int:
             backend.log_artifact(sel.sweep_run_id, str(path), f"compare/{layout.name}")
             console.print(f"  logged to sweep run {sel.sweep_run_id} as compare/{layout.name}/{path.name}")
     return 0
+
+
+LOG_WIDTH = 400
+"""Widest line a table printed to a log may take; a wider table wraps its cells (never cuts them)."""
+
+
+def print_table(table: Table) -> None:
+    """To a terminal: bold and underline, at the terminal's width. Elsewhere (a pipe, a log file): the marks as
+    characters, at the table's natural width up to ``LOG_WIDTH``, so labels and intervals stay on one line."""
+    if console.is_terminal:
+        console.print(to_rich(table))
+        return
+    rich = to_rich(table, chars=True)
+    natural = Measurement.get(console, console.options.update(width=LOG_WIDTH), rich).maximum
+    wide = RedactingConsole(file=console.file, width=max(console.width, min(natural, LOG_WIDTH)), highlight=False)
+    wide.print(rich)
 
 
 def published_averages(table: Table, refs: list[Reference]) -> list[str]:

@@ -15,7 +15,7 @@ from gdwm.compare.stats import Analysis, RowInput, Settings
 KEY = "Bold: best; underlined: second."
 CHARS = {BEST: "*", SECOND: "†"}
 """Marks printed as characters after the value where bold and underline do not survive (a log file, a pipe)."""
-KEY_CHARS = f"{CHARS[BEST]} after a value: best; {CHARS[SECOND]}: second (bold and underline do not survive a log)."
+KEY_CHARS = f"{CHARS[BEST]} best; {CHARS[SECOND]} second (after the value: bold and underline do not survive a log)."
 
 
 def _count(ns: Sequence[int], noun: str) -> str:
