@@ -34,7 +34,6 @@ from rich.table import Table
 
 from gdwm.compare.layout import Direction
 from gdwm.compare.rounding import fmt_significant
-from gdwm.compare.runs import REFERENCE_KIND
 from gdwm.config import BenchmarkConfig, CheckTest, ConfigError, MetricCheck, load_config
 from gdwm.term import console, err_console
 
@@ -356,6 +355,10 @@ def _paired(backend, bench: BenchmarkConfig, base_id: str, now: dict[int, dict])
 
 
 def _baseline(backend, bench: BenchmarkConfig) -> dict | None:
+    """The baseline run's id and metrics: ``benchmark.baseline``, else the suite's latest run tagged as baseline
+    (a regression run, never a reported row)."""
+    from gdwm.compare.runs import REFERENCE_KIND
+
     if bench.baseline:
         try:
             run = backend.client.get_run(bench.baseline)
