@@ -97,7 +97,9 @@ def test_holm_changes_a_mark_the_raw_p_value_gives():
     bonferroni = build_table(
         [seeded("A", A), seeded("B", B), seeded("C", C)], LAYOUT, Settings(correction="bonferroni")
     )
-    assert marks(bonferroni) == {"A": BEST, "B": BEST, "C": SECOND}  # 3 x 0.0387 = 0.116
+    assert bonferroni.decisions[M].adjusted[0, 1] == pytest.approx(3 * p[0, 1])  # 0.116
+    assert marks(bonferroni) == {"A": BEST, "B": BEST, "C": SECOND}
+    assert "Bonferroni over each column's 3 pairs" in bonferroni.legend
 
 
 def test_ties_share_even_where_the_test_would_tell_them_apart():

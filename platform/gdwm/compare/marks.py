@@ -39,7 +39,7 @@ def adjust(pvalues: Mapping[K, float], correction: Correction) -> dict[K, float]
     """Adjusted p-values of one family: reject a hypothesis where its adjusted p < α.
 
     Holm: sort ascending; the k-th smallest (from 0) becomes ``max`` over j <= k of ``(m - j) * p_(j)``, capped at 1."""
-    m = len(pvalues)
+    m, correction = len(pvalues), Correction(correction)
     if correction is Correction.none:
         return dict(pvalues)
     if correction is Correction.bonferroni:
