@@ -13,10 +13,11 @@ import pytest
 from omegaconf import OmegaConf
 
 from gdwm.cli import main
-from gdwm.compare.layout import LayoutConfig
+from gdwm.compare.layout import ColumnConfig, LayoutConfig
 from gdwm.compare.references import ReferencesError, load_references
 from gdwm.compare.rounding import fmt, mean_of_printed
-from gdwm.compare.runs import select
+from gdwm.compare.runs import Row, Trial, select
+from gdwm.compare.table import build_table
 from gdwm.config import load_config
 from tests.gdwm.compare_runs import log_store
 
@@ -84,6 +85,24 @@ def test_the_one_average_rounds_the_printed_mean_half_up_exactly():
     ten = [57.31, 0.63, 47.48, 1.16, 23.0, 10.43, 70.08, 36.39, 99.71, 64.96]  # exactly 41.115
     assert fmt(sum(ten) / 10, 2) == "41.11" and fmt(mean_of_printed(ten, 2), 2) == "41.12"
     assert mean_of_printed([-2.675, 3.0], 2) == pytest.approx(0.16)  # -2.68 (half up, away from 0) and 3.00
+
+
+def test_an_average_column_is_the_mean_of_the_rows_printed_cells_with_the_seeds_spread():
+    two = LayoutConfig(
+        name="t",
+        columns={"x/a": ColumnConfig(), "x/b": ColumnConfig(), "x/avg": ColumnConfig(mean_of=["x/a", "-x/b"])},
+    )
+    # per seed, the suite's average of the printed values: (1.00 - 1.00) / 2 = 0 and (1.01 - 1.00) / 2 = 0.005
+    seeds = [{"x/a": 1.004, "x/b": 1.0, "x/avg": 0.0}, {"x/a": 1.006, "x/b": 1.0, "x/avg": 0.005}]
+    trials = [Trial(f"t{k}", k, "FINISHED", m) for k, m in enumerate(seeds)]
+    table = build_table([Row("r", "R", "FINISHED", "0", {}, trials=trials, planned=2)], two)
+    assert [table.text(0, m) for m in ("x/a", "x/b")] == ["1.01 ± 0.00", "1.00 ± 0.00"]
+    # the mean of the seeds' averages (0.0025) would print 0.00; the row's printed cells give (1.01 - 1.00) / 2
+    avg = table.cell(0, "x/avg")
+    assert (avg.mean, avg.std, avg.n) == (0.005, pytest.approx(0.005 / 2**0.5), 2)
+    assert table.text(0, "x/avg") == "0.01 ± 0.00"
+    partial = build_table([Row("r", "R", "FINISHED", "0", {}, trials=[Trial("t", 0, "FINISHED", {"x/avg": 3.0})])], two)
+    assert partial.cell(0, "x/avg").mean == 3.0  # without its parts, a row keeps the average it logged
 
 
 def test_a_published_table_through_gdwm_compare_gets_its_marks_and_averages(capsys, tmp_path):

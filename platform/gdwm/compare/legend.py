@@ -113,7 +113,9 @@ def legend(
         planned = str(short[0]) if len(short) == 1 else "the planned"
         out.append(f"(n=k): k of {planned} seeds finished.")
     if a.seeded and a.marks and any(c.n < 2 for c in live.values()):
-        out.append("Cells of one seed take no mark.")
+        out.append(
+            "Cells of one seed take no mark" + (" (reported rows aside)." if any(r.reported for r in rows) else ".")
+        )
     for b in a.bootstraps:
         if b.n_samples < b.largest:
             out.append(
