@@ -66,16 +66,16 @@ PROTOCOL = {
     "nuinteract/vg3d_map": "mean over centre distances {0.5,1,2,4} m (nuScenes) of COCO 101-point AP by sample order",
     "nuinteract/vg3d_f1": "F1 at ego-xy centre distance < 2 m: precision over parsed, recall over all samples",
     "nuinteract/plan_acc": _ACC,
-    "nuinteract/avg": "mean of the ten NuInteract metrics as printed (2 decimals, half up), math.fsum",
+    "nuinteract/avg": "mean of the ten NuInteract metrics as printed (2 decimals, half up), exact in Decimal",
     "nuinstruct/mae": "MAE of the first number in the text, answers' unit; unparsed predictions left out and counted",
     "nuinstruct/acc": _ACC,
     "nuinstruct/map": _MAP2D,
     "nuinstruct/bleu": _BLEU,
-    "nuinstruct/average_star": "(acc + map + bleu - mae) / 4 of the values as printed (2 decimals, half up)",
+    "nuinstruct/average_star": "(acc + map + bleu - mae) / 4 of the values as printed (2 decimals, half up), exact",
     "omnidrive/bleu": _BLEU,
     "omnidrive/cider": _CIDER,
     "omnidrive/rouge_l": _ROUGE,
-    "omnidrive/avg": "mean of omnidrive bleu, cider, rouge_l as printed (2 decimals, half up), math.fsum",
+    "omnidrive/avg": "mean of omnidrive bleu, cider, rouge_l as printed (2 decimals, half up), exact in Decimal",
 }
 """What every metric uses (text metrics: and the tokenizer, added when scored)."""
 TEXT_METRICS = frozenset(k for k, v in PROTOCOL.items() if v in (_BLEU, _ROUGE, _CIDER))

@@ -12,6 +12,10 @@ noise: ``tolerance: {sigma: 3}`` allows 3 standard deviations of the compared di
 over its seeds scaled to a difference of two means (``s * sqrt(1/n_baseline + 1/n_now)``). With
 ``test: bootstrap`` a worsening is a regression only if a paired bootstrap over the held-out samples (both runs'
 per-sample predictions, combined over seeds) finds it significant, beyond the tolerance.
+
+The baseline is always a measured run: a reported row (``gdwm.kind=reference``, numbers copied from a paper) named
+as ``benchmark.baseline`` is refused (exit 2). Numbers print rounded half up (``gdwm.compare.rounding``), as every
+table of gdwm does, and the suites' aggregates (Avg.) are the one average of the printed values.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from rich.table import Table
 
 from gdwm.board import resampling_progress
 from gdwm.compare.layout import Direction
+from gdwm.compare.rounding import fmt_significant
 from gdwm.config import BenchmarkConfig, CheckTest, ConfigError, MetricCheck, load_config, sqlite_path
 from gdwm.names import check_name
 from gdwm.term import console, err_console, verbosity
@@ -81,7 +86,7 @@ def check(
                 spread *= math.sqrt(1 / n_b + 1 / n_n)
             tol = c.sigma * spread if spread is not None else math.nan
             shown = f"{c.sigma:g}σ" + (
-                f" = {tol:.3g}" if spread is not None else " (no spread)" if b is not None else ""
+                f" = {fmt_significant(tol, 3)}" if spread is not None else " (no spread)" if b is not None else ""
             )
         else:
             tol = c.tolerance * abs(b) if (c.relative and b is not None) else float(c.tolerance)
@@ -397,11 +402,21 @@ def _baseline_before_launch(cfg: DictConfig, bench: BenchmarkConfig, setting: bo
 
 
 def _baseline(backend, bench: BenchmarkConfig) -> dict | None:
+    """The baseline run's id and metrics: ``benchmark.baseline``, else the suite's latest run tagged as baseline
+    (a regression run, never a reported row)."""
+    from gdwm.compare.runs import REFERENCE_KIND
+
     if bench.baseline:
         try:
             run = backend.client.get_run(bench.baseline)
         except Exception as e:
             raise RegressError(f"benchmark.baseline: no run '{bench.baseline}' in {backend.uri}") from e
+        if run.data.tags.get("gdwm.kind") == REFERENCE_KIND:
+            raise RegressError(
+                f"benchmark.baseline={bench.baseline}: a reported row (gdwm.kind={REFERENCE_KIND}, numbers copied "
+                f"from {run.data.tags.get('gdwm.source.paper') or 'a paper'}) cannot be a regression baseline; name "
+                "a measured run, or record one with --set-baseline"
+            )
         return {"run_id": run.info.run_id, "metrics": dict(run.data.metrics)}
     found = backend.search_runs(
         f"tags.`gdwm.kind` = '{KIND}' and tags.`gdwm.benchmark` = '{bench.name}' and tags.`{BASELINE_TAG}` = 'true'",
@@ -412,7 +427,11 @@ def _baseline(backend, bench: BenchmarkConfig) -> dict | None:
 
 
 def _fmt(v: float | None) -> str:
-    return "–" if v is None else f"{v:.4g}"
+    return "–" if v is None else fmt_significant(v, 4)
+
+
+def _signed(v: float) -> str:
+    return ("+" if v >= 0 else "") + fmt_significant(v, 4)
 
 
 def print_rows(bench: BenchmarkConfig, rows: list[Row], base_run: dict | None, seeds: list[int]) -> None:
@@ -423,7 +442,7 @@ def print_rows(bench: BenchmarkConfig, rows: list[Row], base_run: dict | None, s
         t.add_column(col)
     style = {"REGRESSION": "red", "missing": "red", "no spread": "red", "untestable": "red", "improved": "green"}
     for r in rows:
-        d = "–" if r.delta is None else f"{r.delta:+.4g}"
+        d = "–" if r.delta is None else _signed(r.delta)
         v = f"[{style[r.verdict]}]{r.verdict}[/{style[r.verdict]}]" if r.verdict in style else r.verdict
         t.add_row(r.metric, _fmt(r.baseline), _fmt(r.now), d, r.tolerance, v)
     console.print(t)
@@ -444,7 +463,7 @@ def checks_json(bench: BenchmarkConfig, rows: list[Row]) -> list[dict]:
 def markdown(rows: list[Row]) -> str:
     lines = ["| metric | baseline | now | delta | tolerance | verdict |", "|---|---|---|---|---|---|"]
     for r in rows:
-        d = "–" if r.delta is None else f"{r.delta:+.4g}"
+        d = "–" if r.delta is None else _signed(r.delta)
         lines.append(f"| {r.metric} | {_fmt(r.baseline)} | {_fmt(r.now)} | {d} | {r.tolerance} | {r.verdict} |")
     return "\n".join(lines) + "\n"
 

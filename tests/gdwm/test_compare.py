@@ -20,7 +20,7 @@ from gdwm.compare.render import tex_escape, to_csv, to_latex, to_markdown, to_ri
 from gdwm.compare.report import error_bar, html_report, improvement
 from gdwm.compare.runs import Row, SelectionError, Trial, select, training_curves
 from gdwm.compare.samples import load_samples, scorer
-from gdwm.compare.stats import Settings, rank_marks
+from gdwm.compare.stats import Settings
 from gdwm.compare.table import BEST, SECOND, build_table, normalise
 from gdwm.config import load_config
 from tests.gdwm.compare_runs import CORRECT, LOSS, N_SAMPLES, ROWS, log_store
@@ -36,9 +36,13 @@ LAYOUT = LayoutConfig(
         "nuinteract/plan_acc": ColumnConfig(header="Acc", group="Plan"),
     },
 )
+MARKS = (
+    "Bold: best; underlined: second. Marks by significance in every column: in value order, each row shares the mark "
+    "of the row that opened it unless significantly worse than that row, and then opens the next mark; no row "
+    "outranks a better value (Welch's t-test over seeds; Holm over each column's 3–6 pairs; α = 0.05)."
+)
 LEGEND = (
-    "Bold: best; underlined: second. Rows whose difference is not significant share a mark (Welch's t-test over "
-    "seeds, α = 0.05). Cells: mean ± std over n seeds; one seed without per-sample data: the value alone. "
+    f"{MARKS} Cells: mean ± std over n seeds; one seed without per-sample data: the value alone. "
     "(n=k): k of 3 seeds finished. Cells of one seed take no mark."
 )
 
@@ -73,18 +77,6 @@ def _gdwm(*args: str) -> subprocess.CompletedProcess:
 )
 def test_direction_defaults_from_the_name(metric, direction):
     assert default_direction(metric) == direction
-
-
-def test_rank_marks_share_what_the_test_cannot_tell_apart():
-    means = {0: 3.0, 1: 1.0, 2: 2.9, 3: 2.0}
-
-    def apart(a: int, b: int) -> bool:  # a stand-in test: differences above 0.5 are significant
-        return abs(means[a] - means[b]) > 0.5
-
-    assert rank_marks(means, Direction.higher, apart) == {0: BEST, 2: BEST, 3: SECOND}
-    assert rank_marks(means, Direction.lower, apart) == {1: BEST, 3: SECOND}  # 3 vs 2.9 and 3.0: apart
-    assert rank_marks({0: 0.001, 1: 0.0, 2: 0.004}, Direction.higher, apart) == {}  # all print 0.00
-    assert rank_marks({0: 5.0, 1: 1.0}, Direction.higher, lambda a, b: False) == {0: BEST, 1: BEST}
 
 
 def test_sweep_selects_the_latest_sweeps_rows_with_their_trials(store):
@@ -216,7 +208,7 @@ def test_latex_is_structurally_valid_booktabs(table):
     lines = tex.splitlines()
     assert lines[1] == f"% Legend: {LEGEND}"
     assert lines[-1] == "% \\caption{Mixed. " + tex_escape(LEGEND) + "}"
-    assert r"Welch's t-test over seeds, $\alpha$ = 0.05). Cells: mean $\pm$ std over n seeds" in lines[-1]
+    assert r"3--6 pairs; $\alpha$ = 0.05). Cells: mean $\pm$ std over n seeds" in lines[-1]
 
 
 def test_tex_escape_special_characters():
@@ -373,7 +365,7 @@ def test_html_report_cells_error_bars_legend_and_links(table, store):
     assert "<strong>70.17 ± 0.75</strong>" in html and "<u>65.30 ± 0.42 (n=2)</u>" in html
     assert '<th colspan="1">RD&amp;P</th>' in html
     assert '<p class="legend" id="legend">Bold: best; underlined: second.' in html
-    assert "Welch&#x27;s t-test over seeds, α = 0.05" in html
+    assert "(Welch&#x27;s t-test over seeds; Holm over each column&#x27;s 3–6 pairs; α = 0.05)" in html
     # deltas vs A on the means: B's BLEU +9.27 is better, its MAE -0.60 is better (lower), C's missing 2D mAP is –
     assert (
         '<td class="num better">+9.27</td><td class="num better">+13.50</td><td class="num better">-0.60</td>' in html
@@ -395,7 +387,7 @@ def test_cli_compares_a_sweep_and_logs_the_report_to_it(store):
     assert "Deltas vs baseline B" in html and "No training history" not in html
     assert html.count("<img") == 4  # radar, bars, deltas, training curves
     md = (out / "nuinteract.md").read_text().splitlines()
-    assert md[-1].startswith("Bold: best; underlined: second. Rows whose difference is not significant share a mark")
+    assert md[-1].startswith(MARKS)
     assert md[5].startswith("| B | Voxel Top-K | KL | **69.77 ± 0.75** | – | – | **48.50 ± 0.50** |")
     logged = store.backend().client.list_artifacts(store.sweep_id, "compare/nuinteract")
     assert sorted(a.path for a in logged) == [f"compare/nuinteract/{n}" for n in names]
@@ -415,7 +407,7 @@ def test_cli_one_seed_interval_is_scipys_bootstrap_over_the_samples(store, tmp_p
     assert (row["nuinteract/avg/std"], row["nuinteract/avg/n"], row["nuinteract/avg/mark"]) == ("", "1", "")
     assert float(row["nuinteract/avg/ci_low"]) == pytest.approx(ref.low, rel=1e-12)
     assert float(row["nuinteract/avg/ci_high"]) == pytest.approx(ref.high, rel=1e-12)
-    assert text.splitlines()[-1] == "# Cells: one seed: value [95% bootstrap CI over held-out samples]."
+    assert text.splitlines()[-1] == "# Cells: one seed: value [95% bootstrap CI over held-out samples (BCa)]."
 
 
 @pytest.mark.parametrize(

@@ -21,7 +21,17 @@ M = "nuinteract/avg"
 LAYOUT = LayoutConfig(name="t", title="T", columns={M: ColumnConfig(header="Avg.")})
 FAST = Settings(n_resamples=300)
 """Fewer resamples than the default: these tests check equalities and clear-cut decisions, not the last digit."""
-WELCH = "Welch's t-test over seeds, α = 0.05"
+WELCH = "Welch's t-test over seeds"
+WALK = (
+    "Marks by significance in every column: in value order, each row shares the mark of the row that opened it unless "
+    "significantly worse than that row, and then opens the next mark; no row outranks a better value"
+)
+
+
+def sig(tests: str, pairs: int) -> str:
+    """The legend's marks sentence for one significance-marked column of ``pairs`` pairs (Holm, α = 0.05)."""
+    family = f"Holm over each column's {pairs} pair{'s' * (pairs > 1)}"
+    return f"Bold: best; underlined: second. {WALK} ({tests}; {family}; α = 0.05)."
 
 
 def accuracy(table: pa.Table, wanted=None) -> dict[str, float]:
@@ -69,10 +79,7 @@ def test_overlapping_seeds_share_the_mark():
     assert marks(table) == {"A": BEST, "B": BEST}
     lines = to_markdown(table).splitlines()
     assert lines[4:6] == ["| A | **11.00 ± 1.00** |", "| B | **11.50 ± 1.00** |"]
-    assert table.legend == (
-        f"Bold: best; underlined: second. Rows whose difference is not significant share a mark ({WELCH}). "
-        "Cells: mean ± std over n seeds."
-    )
+    assert table.legend == f"{sig(WELCH, 1)} Cells: mean ± std over n seeds."
 
 
 def test_separated_seeds_get_bold_underline_and_none():
@@ -84,8 +91,8 @@ def test_separated_seeds_get_bold_underline_and_none():
         "| B | <u>20.50 ± 0.50</u> |",
         "| C | 10.50 ± 0.50 |",
     ]
-    assert stats.ttest_ind([20.0, 21.0, 20.5], [10.0, 11.0, 10.5], equal_var=False).pvalue < 0.05
-    assert WELCH in table.legend
+    assert stats.ttest_ind([20.0, 21.0, 20.5], [10.0, 11.0, 10.5], equal_var=False).pvalue < 0.05 / 3
+    assert table.legend.startswith(sig(WELCH, 3))
 
 
 def test_lower_is_better_and_identical_values_give_no_marks():
@@ -121,7 +128,7 @@ def test_one_seed_interval_is_scipys_bootstrap_over_the_samples(method):
     assert (cell.n, cell.std, cell.interval) == (1, None, "bootstrap")
     assert (cell.ci_low, cell.ci_high) == (pytest.approx(ref.low, rel=1e-12), pytest.approx(ref.high, rel=1e-12))
     assert table.text(0, M) == f"{100 * BASE.mean():.2f} [{ref.low:.2f}, {ref.high:.2f}]"
-    assert table.legend == "Cells: one seed: value [95% bootstrap CI over held-out samples]."
+    assert table.legend == f"Cells: one seed: value [95% bootstrap CI over held-out samples ({method})]."
 
 
 def test_several_seeds_with_samples_bootstrap_the_seed_mean():
@@ -150,11 +157,8 @@ def test_paired_bootstrap_tells_a_consistent_margin_from_noise():
     b = paired_bootstrap("qa", {i: [r.trials[0].samples["qa"]] for i, r in enumerate(rows)}, [M], FAST)
     assert b.diffs[0, 2, M][1] < 0  # A - M: the whole interval below 0
     assert b.diffs[0, 1, M][0] < 0 < b.diffs[0, 1, M][1]  # A - N: 0 inside
-    assert table.legend == (
-        "Bold: best; underlined: second. Rows whose difference is not significant share a mark (paired bootstrap "
-        "over 96 held-out samples, 1 seed, 95% CI of the difference (BCa), α = 0.05, 300 resamples). "
-        "Cells: one seed: value [95% bootstrap CI over held-out samples]."
-    )
+    boot = "a paired bootstrap over 96 held-out samples, 1 seed: two-sided p from the 300 resampled differences"
+    assert table.legend == f"{sig(boot, 3)} Cells: one seed: value [95% bootstrap CI over held-out samples (BCa)]."
 
 
 def test_rows_are_aligned_on_the_sample_ids_they_share():
@@ -212,9 +216,8 @@ def test_surviving_seeds_show_n_in_every_format_and_one_seed_takes_no_mark():
     ]
     assert "<u>20.50 ± 0.71 (n=2)</u>" in table_html(table, "http://ui/")
     legend = (
-        f"Bold: best; underlined: second. Rows whose difference is not significant share a mark ({WELCH}). "
-        "Cells: mean ± std over n seeds; one seed without per-sample data: the value alone. (n=k): k of 3 seeds "
-        "finished. Cells of one seed take no mark."
+        f"{sig(WELCH, 1)} Cells: mean ± std over n seeds; one seed without per-sample data: the value alone. "
+        "(n=k): k of 3 seeds finished. Cells of one seed take no mark."
     )
     assert table.legend == legend
     assert md[-1] == legend and lines[-1] == f"# {legend}" and f"% Legend: {legend}" in tex
@@ -271,7 +274,7 @@ def test_with_seeds_a_difference_must_survive_both_the_samples_and_the_seeds():
     assert paired_bootstrap("qa", sets, [M], FAST).diffs[0, 1, M][0] > 0  # the samples alone: A is better
     table = build_table(noisy, LAYOUT, FAST)
     assert marks(table) == {"A": BEST, "B": BEST}
-    assert "Welch's t-test over the seeds, α = 0.05: both must reject" in table.legend
+    assert "and, between rows of >= 2 seeds, Welch's t-test over the seeds: the larger p counts" in table.legend
     # the same gap with seeds that agree: both tests reject
     steady = [_seeded("A", [67, 66, 68], 0), _seeded("B", [48, 47, 49], 10)]
     assert marks(build_table(steady, LAYOUT, FAST)) == {"A": BEST, "B": SECOND}

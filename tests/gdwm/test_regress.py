@@ -219,3 +219,28 @@ def test_a_gate_that_would_check_nothing_exits_2_before_launch(tmp_path, monkeyp
     err = " ".join(capsys.readouterr().err.split())
     assert rc == 2 and err.startswith(f"gdwm regress: {message}"), err
     assert not (tmp_path / "executions.log").exists() and not (toy.work / "cache").exists()
+
+
+def test_a_reported_row_is_never_a_regression_baseline(tmp_path):
+    from gdwm.compare.references import Reference, log_references
+    from gdwm.compare.runs import Source
+    from gdwm.config import BenchmarkConfig
+    from gdwm.regress import RegressError, _baseline, markdown
+    from gdwm.tracking import TrackingBackend
+
+    b = TrackingBackend(f"sqlite:///{tmp_path}/mlflow.db", "gdwm", str(tmp_path / "mlartifacts"))
+    b.system_metrics_interval_s = 0
+    (ref,) = log_references(b, [Reference("DriveMonkey", Source("DriveMonkey", "Tab. 1", "2025"), {"m": 52.12})])
+    b.set_tags(ref, {"gdwm.baseline": "true", "gdwm.benchmark": "nightly"})  # even tagged like one
+    with pytest.raises(RegressError) as e:
+        _baseline(b, BenchmarkConfig(name="nightly", baseline=ref))
+    assert str(e.value) == (
+        f"benchmark.baseline={ref}: a reported row (gdwm.kind=reference, numbers copied from DriveMonkey) cannot be "
+        "a regression baseline; name a measured run, or record one with --set-baseline"
+    )
+    assert _baseline(b, BenchmarkConfig(name="nightly")) is None  # the tagged search looks at regression runs only
+    # regress prints its numbers rounded half up, as every table does: 24.775 is 24.78, not Python's 24.77
+    rows = check(
+        [MetricCheck("nuinteract/avg", Direction.higher, 1.0)], {"nuinteract/avg": 24.0}, {"nuinteract/avg": 24.775}
+    )
+    assert f"{24.775:.4g}" == "24.77" and "| nuinteract/avg | 24 | 24.78 | +0.775 | 1 ↑ | improved |" in markdown(rows)

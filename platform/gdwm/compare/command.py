@@ -1,4 +1,6 @@
-"""``gdwm compare``: select runs, print the table, write the chosen formats, log them to the sweep's parent run."""
+"""``gdwm compare``: select runs (and read ``compare.references``' reported rows), print the table, write the chosen
+formats, log them to the sweep's parent run. A references file alone, without a store or selector, makes a table of
+reported rows. Exit 2 for a bad references file (naming file, line and field), 1 for a selection that fails."""
 
 from __future__ import annotations
 
@@ -8,10 +10,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
+from rich.measure import Measurement
 
 from gdwm.board import resampling_progress
 from gdwm.compare.layout import CompareArgs, Direction, Format, LayoutConfig
+from gdwm.compare.references import Reference, ReferencesError, load_references, log_references, merge
 from gdwm.compare.render import to_csv, to_latex, to_markdown, to_rich
+from gdwm.compare.rounding import fmt as fmt_value
 from gdwm.compare.runs import Selection, SelectionError, select, training_curves
 from gdwm.compare.samples import load_samples
 from gdwm.compare.stats import Settings
@@ -20,7 +25,7 @@ from gdwm.config import sqlite_path, ui_url
 from gdwm.errors import CommandError
 from gdwm.names import check_name
 from gdwm.owned import NotOurs, own_report_dir
-from gdwm.term import console, err_console
+from gdwm.term import RedactingConsole, console, err_console
 from gdwm.tracking import TrackingBackend
 
 METHODS = ("BCa", "percentile", "basic")
@@ -38,35 +43,56 @@ def settings(args: CompareArgs) -> Settings:
         raise ValueError(f"args.resamples={args.resamples}: the bootstrap needs at least 2 resamples")
     if args.bootstrap_method not in METHODS:
         raise ValueError(f"args.bootstrap_method={args.bootstrap_method}: must be one of {', '.join(METHODS)}")
-    return Settings(args.alpha, args.confidence, args.resamples, args.stats_seed, args.bootstrap_method)
+    return Settings(
+        args.alpha, args.confidence, args.resamples, args.stats_seed, args.bootstrap_method, args.correction
+    )
 
 
 @dataclass
 class Comparison:
-    """What ``gdwm compare`` shows: the selection, its table and the row the deltas are taken against."""
+    """What ``gdwm compare`` shows: the selection, its table, the row the deltas are taken against and the reported
+    rows (``compare.references``) it holds."""
 
     selection: Selection
     table: Table
     base: int
+    references: list[Reference]
 
 
-def comparison(cfg: DictConfig, backend: TrackingBackend, warn: Callable[[str], None]) -> Comparison:
-    """Select the rows ``cfg.args`` names, read their samples and build the table: the one way every surface gets it
-    (this command, the dashboard's sweep page). Reads the store, writes nothing; ``warn`` gets each warning."""
+def comparison(cfg: DictConfig, backend: TrackingBackend | None, warn: Callable[[str], None]) -> Comparison:
+    """Select the rows ``cfg.args`` names, read their samples, add ``compare.references``' reported rows and build
+    the table: the one way every surface gets it (this command, the dashboard's sweep page). Reads the store (None:
+    there is none, and only a references file makes the table), writes nothing; ``warn`` gets each warning. A bad
+    references file is a ``ReferencesError`` (exit 2)."""
     args: CompareArgs = OmegaConf.to_object(cfg.args)
     layout: LayoutConfig = OmegaConf.to_object(cfg.compare)
     try:
         stats = settings(args)
     except ValueError as e:
         raise CommandError(str(e)) from e
-    try:
-        sel = select(backend, args.sweep, args.runs, args.filter, args.factors)
-    except SelectionError as e:
-        raise CommandError(str(e)) from e
-    with tempfile.TemporaryDirectory(prefix="gdwm-compare-") as tmp:  # the tables are read into memory
-        for problem in load_samples(backend, sel.rows, Path(tmp)):
-            warn(f"no per-sample statistics for {problem}")
-    table = build_table(sel.rows, layout, stats)
+    refs = load_references(layout.references, layout) if layout.references else []
+    selected = args.sweep or args.runs or args.filter
+    only_refs = Selection("references", f"compare.references={layout.references}", [])
+    if backend is None:
+        if not refs or selected:
+            db = sqlite_path(cfg.tracking.uri)
+            raise CommandError(f"no MLflow store at {db} (tracking.uri); run `gdwm run` first or set workdir=...")
+        sel = only_refs
+    else:
+        try:
+            sel = select(backend, args.sweep, args.runs, args.filter, args.factors)
+        except SelectionError as e:
+            if not refs or selected:
+                raise CommandError(str(e)) from e
+            sel = only_refs
+    rows = merge(refs, sel.rows, sel.selector)
+    if backend is not None:
+        with tempfile.TemporaryDirectory(prefix="gdwm-compare-") as tmp:  # the tables are read into memory
+            for problem in load_samples(backend, sel.rows, Path(tmp)):
+                warn(f"no per-sample statistics for {problem}")
+    table = build_table(rows, layout, stats)
+    for problem in published_averages(table, refs):
+        warn(problem)
     if not any(table.value(i, c.metric) is not None for i in range(len(table.rows)) for c in table.columns):
         logged = sorted({m for r in sel.rows for t in r.trials for m in t.metrics})
         warn(f"the rows logged no metric of layout '{layout.name}' (pick one with compare=NAME); they logged: "
@@ -77,32 +103,40 @@ def comparison(cfg: DictConfig, backend: TrackingBackend, warn: Callable[[str], 
         except KeyError:
             labels = ", ".join(r.label for r in table.rows)
             raise CommandError(f"args.baseline={args.baseline}: no such row (rows: {labels})") from None
-    else:
-        base = next((i for i, r in enumerate(table.rows) if not r.failed), 0)
-    return Comparison(sel, table, base)
+    else:  # the first own row that did not fail (a reported row only when asked for by name)
+        base = next((i for i, r in enumerate(table.rows) if not r.failed and not r.reported), 0)
+    return Comparison(sel, table, base, refs)
 
 
 def compare(cfg: DictConfig) -> int:
-    """Exit 0 with the outputs written; 1 (with a message naming the selector) when nothing matches."""
-
+    """Exit 0 with the outputs written; 1 (with a message naming the selector) when nothing matches; 2 for a bad
+    references file."""
     args: CompareArgs = OmegaConf.to_object(cfg.args)
     layout: LayoutConfig = OmegaConf.to_object(cfg.compare)
     db = sqlite_path(cfg.tracking.uri)
-    if db is not None and not Path(db).is_file():
-        raise CommandError(f"no MLflow store at {db} (tracking.uri); run `gdwm run` first or set workdir=...")
-    backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
+    backend = None
+    if db is None or Path(db).is_file():
+        backend = TrackingBackend(cfg.tracking.uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
 
     def warn(line: str) -> None:
         err_console.print(f"gdwm compare: warning: {line}", markup=False)
 
-    with resampling_progress("gdwm compare"):
-        result = comparison(cfg, backend, warn)
+    try:
+        with resampling_progress("gdwm compare"):
+            result = comparison(cfg, backend, warn)
+    except ReferencesError as e:
+        err_console.print(f"gdwm compare: {e}", markup=False)
+        return 2
     sel, table, base = result.selection, result.table, result.base
-    if sel.sweep_run_id:
+    if backend is not None and result.references and args.log_references:
+        ids = log_references(backend, result.references, sel.sweep_run_id, sel.rows)
+        where = f"under sweep run {sel.sweep_run_id}" if sel.sweep_run_id else f"in experiment {backend.experiment}"
+        console.print(f"logged {len(ids)} reported rows as runs tagged gdwm.kind=reference {where}")
+    if backend is not None and sel.sweep_run_id:
         _log_statistics(backend, table, sel.sweep_run_id)
 
     if Format.terminal in args.formats:
-        console.print(to_rich(table))
+        print_table(table)
     try:  # a sweep's name becomes the folder; gdwm writes only into a folder of its own (gdwm.owned)
         out = Path(args.out or Path(cfg.workdir) / "reports" / check_name(sel.name, "args.sweep")).resolve()
         if any(f in SUFFIX for f in args.formats):
@@ -113,7 +147,7 @@ def compare(cfg: DictConfig) -> int:
         path = out / f"{layout.name}.{SUFFIX[fmt]}"
         path.write_text(_render(fmt, table, base, backend, cfg, sel.selector), encoding="utf-8")
         console.print(f"wrote {path}")
-        if sel.sweep_run_id:  # this process is the only writer of the store while it runs
+        if sel.sweep_run_id and backend is not None:  # this process is the only writer of the store while it runs
             backend.log_artifact(sel.sweep_run_id, str(path), f"compare/{layout.name}")
             console.print(f"  logged to sweep run {sel.sweep_run_id} as compare/{layout.name}/{path.name}")
     return 0
@@ -152,7 +186,42 @@ def key_metric(table) -> str | None:
     return None
 
 
-def _render(fmt: Format, table, base: int, backend: TrackingBackend, cfg: DictConfig, selector: str) -> str:
+LOG_WIDTH = 400
+"""Widest line a table printed to a log may take; a wider table wraps its cells (never cuts them)."""
+
+
+def print_table(table: Table) -> None:
+    """To a terminal: bold and underline, at the terminal's width. Elsewhere (a pipe, a log file): the marks as
+    characters, at the table's natural width up to ``LOG_WIDTH``, so labels and intervals stay on one line."""
+    if console.is_terminal:
+        console.print(to_rich(table))
+        return
+    rich = to_rich(table, chars=True)
+    natural = Measurement.get(console, console.options.update(width=LOG_WIDTH), rich).maximum
+    wide = RedactingConsole(file=console.file, width=max(console.width, min(natural, LOG_WIDTH)), highlight=False)
+    wide.print(rich)
+
+
+def published_averages(table: Table, refs: list[Reference]) -> list[str]:
+    """Where a references file gives an aggregate (Avg.) that is not the mean of the row's printed values: the
+    table shows the mean (the one average every row gets); the file's line says where to look for a typo."""
+    out = []
+    by_label = {r.label: r for r in refs}
+    for i, row in enumerate(table.rows):
+        ref = by_label.get(row.label) if row.reported else None
+        for c in (c for c in table.columns if c.mean_of and ref is not None and c.metric in ref.values):
+            cell = table.cell(i, c.metric)
+            given = fmt_value(ref.values[c.metric], table.precision)
+            if cell is not None and table.fmt(cell.mean) != given:
+                mean = table.fmt(cell.mean)
+                out.append(
+                    f"{ref.where(c.metric)}: {c.header} {given} is not the mean of the row's printed values "
+                    f"({mean}); the table shows {mean}"
+                )
+    return out
+
+
+def _render(fmt: Format, table, base: int, backend: TrackingBackend | None, cfg: DictConfig, selector: str) -> str:
     if fmt is Format.markdown:
         return to_markdown(table)
     if fmt is Format.latex:
@@ -161,5 +230,5 @@ def _render(fmt: Format, table, base: int, backend: TrackingBackend, cfg: DictCo
         return to_csv(table)
     from gdwm.compare.report import html_report  # matplotlib only when a report is asked for
 
-    curves = {r.run_id: training_curves(backend, r) for r in table.rows}
+    curves = {r.run_id: training_curves(backend, r) for r in table.rows if r.run_id and backend is not None}
     return html_report(table, base, curves, ui_url(cfg), selector, cfg.tracking.uri)

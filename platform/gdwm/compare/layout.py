@@ -30,6 +30,22 @@ class Format(StrEnum):
     html = "html"
 
 
+class Rule(StrEnum):
+    """How a column's best and second rows are chosen (``compare.marks``; ``gdwm.compare.marks``)."""
+
+    auto = "auto"
+    value = "value"
+    significance = "significance"
+
+
+class Correction(StrEnum):
+    """Multiple-comparison control over the pairs of a column (``args.correction``)."""
+
+    holm = "holm"
+    bonferroni = "bonferroni"
+    none = "none"
+
+
 class BootstrapMethod(StrEnum):
     BCa = "BCa"
     percentile = "percentile"
@@ -55,6 +71,9 @@ class ColumnConfig:
     """Group header spanning consecutive columns (e.g. ``RD&P``); empty = none."""
     direction: Direction | None = None
     """``higher`` or ``lower`` is better; null = from the name (mae, fid, fvd, fd_*, depth_absrel/rmse: lower)."""
+    mean_of: list[str] = field(default_factory=list)
+    """An aggregate column (Avg.): the mean of these metrics as printed (``-name`` enters negated, as MAE in
+    NuInstruct's Average*), recomputed for every row that has them all, reported rows included; empty = as logged."""
 
 
 @dataclass
@@ -77,6 +96,13 @@ class LayoutConfig:
     """Decimals shown; a column whose values all print the same gets no marks."""
     encoders: list[str] = field(default_factory=list)
     """Trial params naming the encoders a row used (e.g. ``stage.distill.encoder``): the notes print them per row."""
+    marks: Rule = Rule.auto
+    """Marking rule: ``value`` (best and second value, as papers do), ``significance`` (shared where the tests cannot
+    tell rows apart, monotone in value), ``auto`` (per column: significance where every row of the table's own has
+    per-sample data or >= 2 seeds, else value). Reported rows are marked by value in every rule."""
+    references: str | None = None
+    """A CSV or YAML file of reported rows (numbers copied from papers, with their source) shown beside the runs'
+    rows (``gdwm.compare.references``)."""
 
 
 @dataclass
@@ -107,6 +133,12 @@ class CompareArgs:
     """Seed of the bootstrap's resampling: the same runs give the same intervals and marks."""
     bootstrap_method: BootstrapMethod = BootstrapMethod.BCa
     """``BCa`` (its jackknife rescores every row once per held-out sample), ``percentile`` or ``basic``."""
+    correction: Correction = Correction.holm
+    """Multiple-comparison control over the pairs of a column behind the significance marks: ``holm``,
+    ``bonferroni`` or ``none`` (the legend names it)."""
+    log_references: bool = False
+    """Also log ``compare.references``' rows as runs tagged ``gdwm.kind=reference`` (under the sweep run with
+    ``args.sweep``), so later comparisons show them without the file."""
 
 
 @dataclass(frozen=True)
@@ -115,6 +147,8 @@ class Column:
     header: str
     group: str
     direction: Direction
+    mean_of: tuple[tuple[str, int], ...] = ()
+    """(metric, sign) of an aggregate column's parts; empty for a plain column."""
 
     @property
     def arrow(self) -> str:
@@ -130,10 +164,15 @@ def _natural(s: str) -> list:
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
 
 
+def parts(column: ColumnConfig) -> tuple[tuple[str, int], ...]:
+    """(metric, sign) of ``mean_of``: ``-nuinstruct/mae`` -> (``nuinstruct/mae``, -1)."""
+    return tuple((p[1:], -1) if p.startswith("-") else (p, 1) for p in column.mean_of)
+
+
 def resolve_columns(layout: LayoutConfig, logged: Iterable[str]) -> list[Column]:
     """The layout's columns, then the discovered ones (groups in natural order, leaves by ``order``)."""
     cols = [
-        Column(m, c.header or m.rsplit("/", 1)[-1], c.group, Direction(c.direction or default_direction(m)))
+        Column(m, c.header or m.rsplit("/", 1)[-1], c.group, Direction(c.direction or default_direction(m)), parts(c))
         for m, c in layout.columns.items()
     ]
     if layout.discover:

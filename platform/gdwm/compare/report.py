@@ -29,6 +29,7 @@ thead tr:last-child th { border-bottom: 2px solid #444; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; }
 tr.failed td { color: #999; }
 td.note { color: #b00; }
+tr.reported td { font-style: italic; } tr.block-end td { border-bottom: 2px solid #444; }
 td.better { color: #070; } td.worse { color: #b00; }
 img { max-width: 100%; display: block; margin: 1em 0; }
 .meta, .legend { color: #666; }
@@ -172,12 +173,14 @@ def delta_bars(table: Table, base: int) -> str | None:
 
 def _run_link(table: Table, i: int, ui_url: str) -> str:
     r = table.rows[i]
+    if not r.run_id:  # a reported row read from a references file: no run to open
+        return escape(r.label)
     url = f"{ui_url.rstrip('/')}/#/experiments/{r.experiment_id}/runs/{r.run_id}"
     return f'<a href="{escape(url)}">{escape(r.label)}</a>'
 
 
 def _thead(table: Table, extra: list[str]) -> str:
-    lead = ["row", *table.factors]
+    lead = table.lead_names
     if not any(c.group for c in table.columns):
         cells = [*lead, *(f"{c.header} {c.arrow}" for c in table.columns), *extra]
         return "<thead><tr>" + "".join(f"<th>{escape(h)}</th>" for h in cells) + "</tr></thead>"
@@ -192,14 +195,15 @@ def table_html(table: Table, ui_url: str) -> str:
     notes = ["note"] if table.has_notes else []
     body = []
     for i, r in enumerate(table.rows):
-        cells = [_run_link(table, i, ui_url), *(escape(table.factor(i, f)) for f in table.factors)]
+        cells = [_run_link(table, i, ui_url), *(escape(x) for x in table.lead(i)[1:])]
         tds = "".join(f"<td>{c}</td>" for c in cells)
         for c in table.columns:
             text, mark = escape(table.text(i, c.metric)), table.marks.get((i, c.metric))
             text = f"<strong>{text}</strong>" if mark == BEST else f"<u>{text}</u>" if mark == SECOND else text
             tds += f'<td class="num">{text}</td>'
         tds += f'<td class="note">{escape(r.note)}</td>' if notes else ""
-        body.append(f'<tr class="{"failed" if r.failed else "ok"}">{tds}</tr>')
+        kind = "failed" if r.failed else "reported" if r.reported else "ok"
+        body.append(f'<tr class="{kind}{" block-end" if table.block_ends(i) else ""}">{tds}</tr>')
     legend = f'<p class="legend" id="legend">{escape(table.legend)}</p>' if table.legend else ""
     if table.notes:
         legend += '<ul class="legend" id="notes">' + "".join(f"<li>{escape(n)}</li>" for n in table.notes) + "</ul>"

@@ -14,7 +14,10 @@ Tag conventions (set by ``gdwm run`` and the sweep):
   ``gdwm.trial=<run id>``, or that it links with a tag ``gdwm.stage_run.<stage>=<run id>``;
 - an evaluation stage run a trial links may label its metrics with params ``protocol/<metric>`` (``official`` or
   ``approximate``) and ``proxy/<metric>`` (what stands in for the benchmark's data): the table's notes print them;
-- the trial's (and row's) params are its resolved config, flattened: the table's notes print the encoders from them.
+- the trial's (and row's) params are its resolved config, flattened: the table's notes print the encoders from them;
+- a reported row (numbers copied from a paper, ``gdwm compare args.log_references=true`` logs a references file's
+  rows so) is a run tagged ``gdwm.kind=reference``, ``gdwm.row``, ``gdwm.source.paper``, ``gdwm.source.table``,
+  ``gdwm.source.year``, whose metrics are the published values; under a sweep run it is one of the sweep's rows.
 """
 
 from __future__ import annotations
@@ -28,8 +31,10 @@ from gdwm.compare.stats import SampleSet
 from gdwm.tracking import STAGE_TAG, TrackingBackend
 from gdwm.tracking.backend import run_dict
 
-ROW_KINDS = ("row", "run")
+REFERENCE_KIND = "reference"
+ROW_KINDS = ("row", "run", REFERENCE_KIND)
 TRIAL_KIND = "trial"
+SOURCE_PREFIX = "gdwm.source."
 FACTOR_PREFIX = "gdwm.factor."
 STAGE_LINK_PREFIX = "gdwm.stage_run."
 PROTOCOL_PARAM = "protocol/"
@@ -48,6 +53,25 @@ def _note(tags: dict[str, str]) -> str:
     stage = tags.get("gdwm.failed_stage")
     error = tags.get("gdwm.error", "").strip().splitlines()
     return f"failed{f' at {stage}' if stage else ''}{f': {error[0]}' if error else ''}"
+
+
+@dataclass(frozen=True)
+class Source:
+    """Where a reported row's numbers were published."""
+
+    paper: str
+    """The paper (a citation key or title)."""
+    table: str = ""
+    """The table in it (e.g. ``Tab. 3``)."""
+    year: str = ""
+
+    def __str__(self) -> str:
+        """``DriveMonkey (2025)``: what the table's source column shows (the notes name the tables)."""
+        return f"{self.paper} ({self.year})" if self.year else self.paper
+
+    def tags(self) -> dict[str, str]:
+        fields = {"paper": self.paper, "table": self.table, "year": self.year}
+        return {f"{SOURCE_PREFIX}{k}": v for k, v in fields.items()}
 
 
 @dataclass
@@ -89,6 +113,13 @@ class Row:
     """Seeds the row was meant to have (``gdwm.seeds``)."""
     params: dict[str, str] = field(default_factory=dict)
     """The row run's params (a row run logs its first trial's config)."""
+    source: Source | None = None
+    """Where a reported row's values were published; None for the rows of runs (the table's own)."""
+
+    @property
+    def reported(self) -> bool:
+        """Values copied from a paper: one number per cell, no seeds, no samples; marked by value only."""
+        return self.source is not None
 
     def param(self, key: str) -> str | None:
         """``key`` from the row's params, else from its first counted trial that has it."""
@@ -148,6 +179,8 @@ def _row(backend: TrackingBackend, r: dict, factor_params: list[str], selector: 
     row = Row(r["run_id"], label, r["status"], backend.experiment_id, dict(r["metrics"]), factors, dict(tags), trials)
     row.planned = max(len(seeds), len(trials))
     row.params = dict(r["params"])
+    if tags.get("gdwm.kind") == REFERENCE_KIND:
+        row.source = Source(*(tags.get(f"{SOURCE_PREFIX}{k}", "") for k in ("paper", "table", "year")))
     return row
 
 
@@ -208,7 +241,8 @@ def select(
             raise SelectionError(f"{selector}: no sweep named '{sweep}' in experiment '{backend.experiment}'")
         sweep_run_id = parents[0]["run_id"]
         found = _search(backend, f"tags.`{MLFLOW_PARENT_RUN_ID}` = '{sweep_run_id}'", selector)
-        found = _order(newest_per_row([r for r in found if r["tags"].get("gdwm.kind") in ("row", TRIAL_KIND)]))
+        kinds = ("row", TRIAL_KIND, REFERENCE_KIND)
+        found = _order(newest_per_row([r for r in found if r["tags"].get("gdwm.kind") in kinds]))
         name = sweep
     elif runs:
         selector = f"args.runs={list(runs)}"

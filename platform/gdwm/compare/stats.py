@@ -1,4 +1,4 @@
-"""Uncertainty of every cell and significance-earned marks, from per-seed metrics and per-sample predictions.
+"""Uncertainty of every cell and the p-values behind the marks, from per-seed metrics and per-sample predictions.
 
 Pure (no MLflow; ``runs`` and ``samples`` read what it needs). The statistics are scipy.stats':
 
@@ -8,9 +8,11 @@ Pure (no MLflow; ``runs`` and ``samples`` read what it needs). The statistics ar
   mAP) on every resample; without per-sample data, no interval;
 - one ``scipy.stats.bootstrap`` per evaluation stage resamples the sample ids every row shares and returns every
   row's value and every pairwise difference, so intervals and paired differences come from the same resamples;
-- per column, the best row and every row not significantly different from it are bold; of the rest, the top one
-  and every row not significantly different from it are underlined. A pair is told apart by the paired bootstrap
-  CI of its difference when both rows have samples, else by Welch's t-test over seeds, else not at all.
+- a pair of rows is compared by the two-sided bootstrap p-value of its difference (twice the share of resampled
+  differences on the far side of 0) when both rows have samples, by Welch's t-test over seeds when both have >= 2
+  seeds, by the larger of the two when both apply (an intersection-union test: the difference must survive the
+  samples' noise and the seeds'), else not at all; ``marks`` adjusts a column's p-values together and walks the
+  rows in value order. Reported rows (values copied from papers) take part by value only.
 """
 
 from __future__ import annotations
@@ -27,9 +29,11 @@ import numpy as np
 from scipy import stats
 
 from gdwm.compare.layout import Direction
-from gdwm.compare.rounding import round_half_up
+from gdwm.compare.marks import BEST, SECOND, Correction, Decision, Entry, Rule, adjust, column_marks
+from gdwm.compare.rounding import mean_of_printed, printed
 
-BEST, SECOND = "best", "second"
+__all__ = ["BEST", "SECOND", "Analysis", "Bootstrap", "Cell", "RowInput", "SampleSet", "Seed", "Settings", "analyse"]
+
 ON_RESAMPLE: ContextVar[Callable[[str, int, int], None] | None] = ContextVar("gdwm_on_resample", default=None)
 """Called as ``hook(stage, resamples scored so far, resamples planned)`` while a bootstrap runs (progress output)."""
 
@@ -69,6 +73,8 @@ class RowInput:
     """Seeds the row was meant to have; cells with fewer show their n."""
     failed: bool = False
     """A failed row is shown but never gets or takes a mark."""
+    reported: bool = False
+    """Values copied from a paper (one number per cell, nothing to test): marked by value only."""
 
 
 @dataclass(frozen=True)
@@ -83,6 +89,8 @@ class Settings:
     """Seed of the resampling: the same inputs give the same intervals and marks."""
     method: str = "BCa"
     """``scipy.stats.bootstrap`` method; where BCa is degenerate (NaN) the percentile interval is used."""
+    correction: Correction = Correction.holm
+    """Multiple-comparison control over the pairs of a column (``marks.adjust``)."""
 
 
 @dataclass(frozen=True)
@@ -115,6 +123,9 @@ class Bootstrap:
     """(row, metric) -> interval of the seed-mean at ``confidence``."""
     diffs: dict[tuple[int, int, str], tuple[float, float]] = field(default_factory=dict)
     """(row a, row b, metric) -> two-sided interval of a - b at 1 - alpha."""
+    p: dict[tuple[int, int, str], float] = field(default_factory=dict)
+    """(row a, row b, metric) -> two-sided p of a - b = 0: twice the smaller share of resampled differences <= 0 or
+    >= 0 (capped at 1; 0 when every resample falls on one side, i.e. p < 1 / resamples)."""
     fell_back: bool = False
     """Some interval is the percentile one because the configured method gave NaN (a degenerate distribution)."""
 
@@ -122,9 +133,18 @@ class Bootstrap:
 @dataclass
 class Analysis:
     cells: dict[tuple[int, str], Cell]
-    marks: dict[tuple[int, str], str]
-    """(row, metric) -> ``best`` | ``second``."""
-    legend: str
+    """(row, metric) -> the cell's value and uncertainty."""
+    decisions: dict[str, Decision]
+    """metric -> how its column was marked (rule, marks, raw and adjusted p-values of the pairs)."""
+    bootstraps: list[Bootstrap]
+    """One per evaluation stage whose samples were resampled."""
+    seeded: bool
+    """Some live row of the table's own has >= 2 seeds in some column: then its one-seed cells take no mark."""
+
+    @property
+    def marks(self) -> dict[tuple[int, str], str]:
+        """(row, metric) -> ``best`` | ``second``."""
+        return {(i, m): mark for m, d in self.decisions.items() for i, mark in d.marks.items()}
 
 
 def seed_cell(values: Sequence[float], confidence: float = 0.95) -> Cell:
@@ -269,22 +289,37 @@ def paired_bootstrap(
         for k, m in enumerate(found):
             j = nv + p * len(found) + k
             out.diffs[rows[a], rows[b], m] = (float(dlow[j]), float(dhigh[j]))
+            out.p[rows[a], rows[b], m] = bootstrap_p(res.bootstrap_distribution[j])
     return out
 
 
-def rank_marks(
-    means: Mapping[int, float], direction: Direction, better: Callable[[int, int], bool], precision: int = 2
-) -> dict[int, str]:
-    """``best`` for the top row and every row it is not significantly ``better`` than; ``second`` likewise among
-    the rest. No marks when every value prints the same (at ``precision``)."""
-    if len({round_half_up(v, precision) for v in means.values()}) < 2:
-        return {}
-    order = sorted(means, key=lambda i: means[i], reverse=direction is Direction.higher)
-    marks = {order[0]: BEST} | {j: BEST for j in order[1:] if not better(order[0], j)}
-    rest = [j for j in order if j not in marks]
-    if rest:
-        marks |= {rest[0]: SECOND} | {j: SECOND for j in rest[1:] if not better(rest[0], j)}
-    return marks
+def bootstrap_p(diffs: np.ndarray) -> float:
+    """Two-sided p-value of "no difference" from resampled differences (the percentile interval inverted: the
+    smallest α whose 1 - α interval excludes 0); NaN resamples (a metric undefined there) are left out."""
+    d = diffs[np.isfinite(diffs)]
+    if not d.size:
+        return math.nan
+    return min(1.0, 2.0 * min(float(np.mean(d <= 0)), float(np.mean(d >= 0))))
+
+
+def pair_p(
+    a: int, b: int, metric: str, values: Mapping[tuple[int, str], Sequence[float]], boots: Sequence[Bootstrap]
+) -> tuple[float, str] | None:
+    """(p, test) of rows a and b on ``metric``: the bootstrap's p, Welch's over >= 2 seeds each, or the larger of the
+    two when both apply; None when neither can be computed."""
+    boot = next((bs.p.get((a, b, metric), bs.p.get((b, a, metric))) for bs in boots if _has(bs, a, b, metric)), None)
+    seeds = len(values.get((a, metric), ())) >= 2 and len(values.get((b, metric), ())) >= 2
+    welch = None
+    if seeds:
+        welch = welch_p(values[a, metric], values[b, metric])
+        welch = 1.0 if math.isnan(welch) else welch  # two constant, equal sets of seeds: nothing to tell apart
+    if boot is not None and not math.isnan(boot):
+        return (max(boot, welch), "bootstrap+welch") if welch is not None else (boot, "bootstrap")
+    return (welch, "welch") if welch is not None else None
+
+
+def _has(b: Bootstrap, i: int, j: int, metric: str) -> bool:
+    return (i, j, metric) in b.p or (j, i, metric) in b.p
 
 
 def analyse(
@@ -292,8 +327,12 @@ def analyse(
     columns: Sequence[tuple[str, Direction]],
     settings: Settings = Settings(),
     precision: int = 2,
+    rule: Rule = Rule.auto,
+    means: Mapping[str, Sequence[tuple[str, int]]] | None = None,
 ) -> Analysis:
-    """Cells (with intervals), marks and the legend for ``columns`` (metric, direction) of ``rows``."""
+    """Cells (with intervals) and, per column (metric, direction), its marks by ``rule``. ``means``: aggregate
+    metric -> its (part, sign)s; its cell's value becomes the mean of the printed parts (``mean_of_printed``) in
+    every row that has them all, the uncertainty staying that of the logged aggregate."""
     labels = {i: r.label for i, r in enumerate(rows)}
     values: dict[tuple[int, str], list[float]] = {}
     for i, r in enumerate(rows):
@@ -302,14 +341,21 @@ def analyse(
             if xs:
                 values[i, m] = xs
     cells = {key: seed_cell(xs, settings.confidence) for key, xs in values.items()}
+    for m, parts in (means or {}).items():
+        for i in range(len(rows)):
+            got = [cells.get((i, p)) for p, _ in parts]
+            if all(c is not None for c in got):
+                v = mean_of_printed([c.mean * sign for c, (_, sign) in zip(got, parts, strict=True)], precision)
+                cells[i, m] = replace(cells[i, m], mean=v) if (i, m) in cells else Cell(v, min(c.n for c in got))
 
     boots: list[Bootstrap] = []
     todo = [m for m, _ in columns]
-    for stage in sorted({st for r in rows if not r.failed for s in r.seeds for st in s.samples}):
+    own = [i for i, r in enumerate(rows) if not r.failed and not r.reported]
+    for stage in sorted({st for i in own for s in rows[i].seeds for st in s.samples}):
         sets = {
-            i: [s.samples[stage] for s in r.seeds]
-            for i, r in enumerate(rows)
-            if not r.failed and r.seeds and all(stage in s.samples for s in r.seeds)
+            i: [s.samples[stage] for s in rows[i].seeds]
+            for i in own
+            if rows[i].seeds and all(stage in s.samples for s in rows[i].seeds)
         }
         b = paired_bootstrap(stage, sets, todo, settings, labels) if sets else None
         if b is None:
@@ -320,103 +366,34 @@ def analyse(
                 cells[i, m] = replace(cells[i, m], ci_low=low, ci_high=high, interval="bootstrap")
         todo = [m for m in todo if not any(key[1] == m for key in b.values)]
 
-    diffs = {k: v for b in boots for k, v in b.diffs.items()}
-    used: set[str] = set()
-
-    def better(a: int, b: int, metric: str, direction: Direction) -> bool:
-        """Row a significantly better than row b on ``metric``."""
-        d = diffs.get((a, b, metric)) or (
-            (-diffs[b, a, metric][1], -diffs[b, a, metric][0]) if (b, a, metric) in diffs else None
-        )
-        seeds = cells[a, metric].n >= 2 and cells[b, metric].n >= 2
-
-        def welch() -> bool:
-            ahead = (cells[a, metric].mean > cells[b, metric].mean) == (direction is Direction.higher)
-            return ahead and welch_p(values[a, metric], values[b, metric]) < settings.alpha
-
-        if d is not None and not math.isnan(d[0]) and not math.isnan(d[1]):
-            sig = d[0] > 0 if direction is Direction.higher else d[1] < 0
-            if not seeds:
-                used.add("bootstrap")
-                return sig
-            # samples and seeds are two sources of noise: the difference counts only if it survives both (an
-            # intersection-union test, still at level alpha)
-            used.add("bootstrap+welch")
-            return sig and welch()
-        if seeds:
-            used.add("welch")
-            return welch()
-        used.add("untested")
-        return False
-
     live = {key: c for key, c in cells.items() if not rows[key[0]].failed}
-    seeded = any(c.n >= 2 for c in live.values())
-    marks: dict[tuple[int, str], str] = {}
+    seeded = any(c.n >= 2 for (i, _), c in live.items() if not rows[i].reported)
+    sampled = {(i, m) for b in boots for (i, m) in b.values}
+    decisions: dict[str, Decision] = {}
     for m, direction in columns:
-        means = {i: c.mean for (i, mm), c in live.items() if mm == m and (c.n >= 2 or not seeded)}
-        col = rank_marks(means, direction, lambda a, b, m=m, d=direction: better(a, b, m, d), precision)
-        marks |= {(i, m): mark for i, mark in col.items()}
-    return Analysis(cells, marks, legend(rows, live, boots, used, settings, seeded, bool(marks)))
+        cand = [i for (i, mm), c in live.items() if mm == m and (rows[i].reported or c.n >= 2 or not seeded)]
+        mine = [i for i in cand if not rows[i].reported]
+        testable = all(len(values.get((i, m), ())) >= 2 or (i, m) in sampled for i in mine)
+        chosen = Rule.value if rule is Rule.value or len(mine) < 2 else Rule.significance
+        if rule is Rule.auto and not testable:
+            chosen = Rule.value
+        d = Decision(chosen)
+        if chosen is Rule.significance:
+            for a, b in combinations(sorted(mine), 2):
+                found = pair_p(a, b, m, values, boots)
+                if found is None:
+                    d.tests.add("untested")
+                    continue
+                d.pvalues[a, b], test = found
+                d.tests.add(test)
+            d.adjusted = adjust(d.pvalues, settings.correction)
+        tested = chosen is Rule.significance
+        entries = {i: Entry(cells[i, m].mean, printed(cells[i, m].mean, precision), tested and i in mine) for i in cand}
 
+        def worse(a: int, b: int, d: Decision = d) -> bool:
+            p = d.adjusted.get((min(a, b), max(a, b)))
+            return p is not None and p < settings.alpha
 
-def _count(ns: Sequence[int], noun: str) -> str:
-    lo, hi = min(ns), max(ns)
-    return f"{lo} {noun}" + ("" if hi == 1 else "s") if lo == hi else f"{lo}–{hi} {noun}s"
-
-
-def legend(
-    rows: Sequence[RowInput],
-    live: Mapping[tuple[int, str], Cell],
-    boots: Sequence[Bootstrap],
-    used: set[str],
-    settings: Settings,
-    seeded: bool,
-    marked: bool,
-) -> str:
-    """What the marks mean and which test earned them, what the uncertainty is, and which cells lack seeds."""
-    alpha, pct = f"α = {settings.alpha:g}", f"{settings.confidence * 100:g}%"
-    out = []
-    if marked:
-        tests = []
-        if used & {"bootstrap", "bootstrap+welch"}:
-            samples = " and ".join(f"{b.n_samples}" + (f" ({b.stage})" if len(boots) > 1 else "") for b in boots)
-            method = settings.method
-            if any(b.fell_back for b in boots):
-                method += ", percentile where it was degenerate"
-            seeds = _count([n for b in boots for n in b.seeds], "seed")
-            tests.append(
-                f"paired bootstrap over {samples} held-out samples, {seeds}, "
-                f"{(1 - settings.alpha) * 100:g}% CI of the difference ({method}), {alpha}, "
-                f"{settings.n_resamples} resamples"
-            )
-        if "bootstrap+welch" in used:
-            tests.append(f"and, between rows of >= 2 seeds, Welch's t-test over the seeds, {alpha}: both must reject")
-        if "welch" in used:
-            tests.append(f"{'else ' if tests else ''}Welch's t-test over seeds, {alpha}")
-        if "untested" in used:
-            tests.append("rows with one seed and no per-sample data cannot be told apart")
-        out.append(
-            "Bold: best; underlined: second. Rows whose difference is not significant share a mark "
-            f"({'; '.join(tests)})."
-        )
-    kinds = []
-    if any(c.n >= 2 for c in live.values()):
-        kinds.append("mean ± std over n seeds")
-    if any(c.n == 1 and c.interval == "bootstrap" for c in live.values()):
-        kinds.append(f"one seed: value [{pct} bootstrap CI over held-out samples]")
-    if any(c.n == 1 and c.interval is None for c in live.values()):
-        kinds.append("one seed without per-sample data: the value alone")
-    if kinds:
-        out.append(f"Cells: {'; '.join(kinds)}.")
-    short = sorted({rows[i].planned for (i, _), c in live.items() if c.n < rows[i].planned})
-    if short:
-        planned = str(short[0]) if len(short) == 1 else "the planned"
-        out.append(f"(n=k): k of {planned} seeds finished.")
-    if seeded and marked and any(c.n < 2 for c in live.values()):
-        out.append("Cells of one seed take no mark.")
-    for b in boots:
-        if b.n_samples < b.largest:
-            out.append(
-                f"{b.stage}: rows are compared on the {b.n_samples} sample ids they all share (of up to {b.largest})."
-            )
-    return " ".join(out)
+        d.marks = column_marks(entries, direction, worse if tested else None)
+        decisions[m] = d
+    return Analysis(cells, decisions, boots, seeded)

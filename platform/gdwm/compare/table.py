@@ -1,11 +1,18 @@
 """The comparison table: factor columns, grouped metric columns, cells with their uncertainty, earned marks.
 
 A cell is the mean over a row's finished seeds with its std (or, for one seed, a bootstrap interval over the
-held-out samples); bold / underline are given by significance tests (``stats``), and ``legend`` says which.
-Missing values and failed rows never get or take a mark. Values print rounded half up, as the paper's tables do.
+held-out samples); a reported row's cell is the published value. Bold / underline follow the column's marking rule
+(``marks``: by value, or by significance tests from ``stats``), and ``legend`` says which rule each column used.
+Missing values and failed rows never get or take a mark. Values print rounded half up, as the paper's tables do, and
+an aggregate column (the layout's ``mean_of``: Avg.) is the mean of the row's printed cells (``rounding``).
 ``notes`` (every format prints them under the legend) say which metrics are official or approximate and which
-stand on proxy data (from the trials' evaluation stage runs; a proxy table's title says so), and which encoders
-each row used (the layout's ``encoders`` params).
+stand on proxy data (from the trials' evaluation stage runs; a proxy table's title says so), which encoders each
+row used (the layout's ``encoders`` params), and where the reported rows come from.
+
+The computed table is plain data for whoever reads it further (the renderers, the HTML report, MLflow logging):
+``rows[i]`` (label, run id, factors, ``source`` for a reported row), ``columns`` (metric, header, group, direction),
+``cells[(i, metric)]`` (``Cell``: mean, n, std, ci_low, ci_high, interval kind), ``marks[(i, metric)]`` and
+``decisions[metric]`` (``marks.Decision``: the rule used, the pairs' raw and adjusted p-values).
 """
 
 from __future__ import annotations
@@ -15,11 +22,13 @@ from dataclasses import dataclass, field
 from itertools import groupby
 
 from gdwm.compare.layout import Column, Direction, LayoutConfig, resolve_columns
+from gdwm.compare.legend import CHARS, KEY, KEY_CHARS, legend
+from gdwm.compare.marks import BEST, SECOND, Decision
 from gdwm.compare.rounding import fmt
 from gdwm.compare.runs import Row
-from gdwm.compare.stats import BEST, SECOND, Cell, RowInput, Seed, Settings, analyse
+from gdwm.compare.stats import Cell, RowInput, Seed, Settings, analyse
 
-__all__ = ["BEST", "MISSING", "SECOND", "Table", "build_table", "normalise"]
+__all__ = ["BEST", "CHARS", "MISSING", "SECOND", "Table", "build_table", "normalise"]
 
 MISSING = "–"
 
@@ -53,12 +62,36 @@ class Table:
     precision: int = 2
     cells: dict[tuple[int, str], Cell] = field(default_factory=dict)
     """(row index, metric) -> mean, std, n and interval; absent = not logged."""
-    marks: dict[tuple[int, str], str] = field(default_factory=dict)
-    """(row index, metric) -> ``best`` | ``second``."""
-    legend: str = ""
-    """What the cells and marks mean and which test gave the marks; every format prints it."""
+    decisions: dict[str, Decision] = field(default_factory=dict)
+    """metric -> how its column was marked: rule, marks, the pairs' raw and adjusted p-values."""
+    explanation: str = ""
+    """The legend after its key: which rule and test gave the marks, what the cells are (``legend.legend``)."""
     notes: list[str] = field(default_factory=list)
-    """Official / approximate metrics, proxy data, encoders per row (``table_notes``); every format prints them."""
+    """Official / approximate metrics, proxy data, encoders per row, sources of reported rows (``table_notes``);
+    every format prints them."""
+
+    @property
+    def marks(self) -> dict[tuple[int, str], str]:
+        """(row index, metric) -> ``best`` | ``second``."""
+        return {(i, m): mark for m, d in self.decisions.items() for i, mark in d.marks.items()}
+
+    def legend_text(self, chars: bool = False) -> str:
+        """The legend with the key to the marks: typeset (bold, underline) or as characters (``*``, ``†``)."""
+        key = (KEY_CHARS if chars else KEY) if any(d.marks for d in self.decisions.values()) else ""
+        return " ".join(x for x in (key, self.explanation) if x)
+
+    @property
+    def legend(self) -> str:
+        """What the marks and cells mean, for the formats that typeset marks; every format prints it."""
+        return self.legend_text()
+
+    @property
+    def reported(self) -> bool:
+        """Some row is reported (copied from a paper): the formats add a source column."""
+        return any(r.reported for r in self.rows)
+
+    def source(self, i: int) -> str:
+        return str(self.rows[i].source) if self.rows[i].source else ""
 
     def cell(self, i: int, metric: str) -> Cell | None:
         return self.cells.get((i, metric))
@@ -88,17 +121,38 @@ class Table:
             unc = ""
         return self.fmt(c.mean), unc, f"(n={c.n})" if c.n < self.rows[i].planned else ""
 
-    def text(self, i: int, metric: str) -> str:
-        """The cell as one line: ``35.10 ± 1.20 (n=2)``."""
-        return " ".join(filter(None, self.parts(i, metric)))
+    def text(self, i: int, metric: str, chars: bool = False) -> str:
+        """The cell as one line: ``35.10 ± 1.20 (n=2)``; ``chars``: its mark as a character after the value."""
+        value, unc, count = self.parts(i, metric)
+        if chars:
+            value += CHARS.get(self.marks.get((i, metric), ""), "")
+        return " ".join(filter(None, (value, unc, count)))
 
     def factor(self, i: int, name: str) -> str:
-        return self.rows[i].factors.get(name, MISSING)
+        """The row's value of a factor; ``–`` where it has none, empty for a reported row (it has no factors)."""
+        return self.rows[i].factors.get(name, "" if self.rows[i].reported else MISSING)
+
+    @property
+    def lead_names(self) -> list[str]:
+        """Headers of the columns before the metrics: ``row``, the factors, ``source`` when a row is reported."""
+        return ["row", *self.factors, *(["source"] if self.reported else [])]
+
+    def lead(self, i: int) -> list[str]:
+        """Row ``i``'s cells before the metrics (``lead_names``)."""
+        return [self.rows[i].label, *(self.factor(i, f) for f in self.factors), *([self.source(i)] * self.reported)]
+
+    def block_ends(self, i: int) -> bool:
+        """Row ``i`` is the last reported row and own rows follow: the formats draw a rule under it."""
+        nxt = i + 1
+        return self.rows[i].reported and nxt < len(self.rows) and not self.rows[nxt].reported
 
     @property
     def caption(self) -> list[str]:
         """The legend, then the notes: the lines every format prints under the table."""
-        return [x for x in (self.legend, *self.notes) if x]
+        return self.caption_lines()
+
+    def caption_lines(self, chars: bool = False) -> list[str]:
+        return [x for x in (self.legend_text(chars), *self.notes) if x]
 
     @property
     def has_notes(self) -> bool:
@@ -128,9 +182,10 @@ class Table:
 
 
 def row_input(row: Row) -> RowInput:
-    """What the statistics need of a row: its counted trials' metrics and sample sets, planned seeds, failure."""
+    """What the statistics need of a row: its counted trials' metrics and sample sets, planned seeds, failure,
+    whether it is reported."""
     seeds = [Seed(t.metrics, t.samples, t.seed) for t in row.counted]
-    return RowInput(row.label, seeds, row.planned, row.failed)
+    return RowInput(row.label, seeds, row.planned, row.failed, row.reported)
 
 
 def _name(c: Column) -> str:
@@ -159,15 +214,24 @@ def table_notes(rows: list[Row], columns: list[Column], encoders: list[str]) -> 
     if proxies:
         notes.append("Proxy: " + "; ".join(f"{', '.join(cols)}: {what}" for what, cols in proxies.items()) + ".")
     if encoders:
-        per_row = {r.label: [r.param(k) for k in encoders] for r in rows}
+        per_row = {r.label: [r.param(k) for k in encoders] for r in rows if not r.reported}
         per_row = {label: v for label, v in per_row.items() if any(x is not None for x in v)}
         if per_row:
             head = f"Encoders ({', '.join(encoders)})"
             values = {label: ", ".join(MISSING if x is None else x for x in v) for label, v in per_row.items()}
-            if len(set(values.values())) == 1 and len(values) == len(rows):
+            if len(set(values.values())) == 1 and len(values) == sum(not r.reported for r in rows):
                 notes.append(f"{head}: {next(iter(values.values()))} in every row.")
             else:
                 notes.append(f"{head}: " + "; ".join(f"{label} → {v}" for label, v in values.items()) + ".")
+    tables = {}
+    for r in rows:
+        if r.source and r.source.table:
+            tables.setdefault(r.source.table, []).append(r.label)
+    if len(tables) == 1 and sum(len(v) for v in tables.values()) == sum(r.reported for r in rows):
+        notes.append(f"Reported rows are copied from {next(iter(tables))}.")
+    elif tables:
+        where = "; ".join(f"{t}: {', '.join(labels)}" for t, labels in tables.items())
+        notes.append(f"Reported rows are copied from: {where}.")
     return notes, bool(proxies)
 
 
@@ -176,14 +240,20 @@ def _order(item: tuple[str, list[str]]) -> int:
 
 
 def build_table(rows: list[Row], layout: LayoutConfig, settings: Settings | None = None) -> Table:
-    """Columns from the layout (plus discovered ones), factors in order of first appearance, then per cell its
-    mean and uncertainty and per column the marks the tests earn (``stats.analyse``), and the notes."""
+    """Columns from the layout (plus discovered ones), reported rows first (a block, as papers list prior work),
+    factors in order of first appearance, then per cell its mean and uncertainty (an aggregate column: the mean of
+    the row's printed parts), per column the marks of ``layout.marks`` (``stats.analyse``), the legend, the notes."""
+    rows = [r for r in rows if r.reported] + [r for r in rows if not r.reported]
     logged = {m for r in rows for t in r.trials for m in t.metrics}
     columns = resolve_columns(layout, logged)
     factors = list(dict.fromkeys(f for r in rows for f in r.factors))
     metrics = [(c.metric, c.direction) for c in columns]
-    a = analyse([row_input(r) for r in rows], metrics, settings or Settings(), layout.precision)
+    inputs = [row_input(r) for r in rows]
+    settings = settings or Settings()
+    means = {c.metric: c.mean_of for c in columns if c.mean_of}
+    a = analyse(inputs, metrics, settings, layout.precision, layout.marks, means)
     notes, proxy = table_notes(rows, columns, layout.encoders)
     title = layout.title or layout.name
     title += " (proxy)" if proxy and "proxy" not in title.lower() else ""
-    return Table(title, factors, columns, rows, layout.precision, a.cells, a.marks, a.legend, notes)
+    explanation = legend(inputs, a, settings, {c.metric: _name(c) for c in columns}, layout.marks)
+    return Table(title, factors, columns, rows, layout.precision, a.cells, a.decisions, explanation, notes)
