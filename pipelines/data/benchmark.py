@@ -396,7 +396,8 @@ def render(root: str | Path) -> list[RenderableType]:
     from pipelines.data.summary import renderables, summarize
 
     ds = GSQADataset(root)
-    out = renderables(summarize(root))
+    # the per-subtask table below replaces the task-family one (its families are NuInteract's)
+    out = [p for p in renderables(summarize(root)) if not (isinstance(p, Table) and p.title == "QA per task family")]
     qa = ds.table("qa")
     counts = Counter(zip(qa["task"].to_pylist(), qa["category"].to_pylist(), qa["split"].to_pylist(), strict=True))
     splits = sorted({s for _, _, s in counts})
@@ -408,11 +409,13 @@ def render(root: str | Path) -> list[RenderableType]:
     out.append(t)
     b = ds.meta.get("benchmark", {})
     if b:
-        named = {k: v for k, v in b.get("released_splits", {}).items()}
+        splits = ", ".join(
+            f"{k} -> {v}" if k != "-" else "none (dense captions) -> their scene's"
+            for k, v in b.get("released_splits", {}).items()
+        )
         out.append(
             f"{b.get('name')}: {b.get('matched')} of {b.get('records')} records on frames of {b['nuscenes']['root']} "
-            f"(released splits: {', '.join(f'{k} -> {v}' for k, v in named.items())}; exact repeats dropped: "
-            f"{b.get('repeats_dropped', 0)})"
+            f"(released splits: {splits}; exact repeats dropped: {b.get('repeats_dropped', 0)})"
         )
         u = b.get("unmatched", {})
         if u.get("records"):
