@@ -151,14 +151,11 @@ def foreign(obj: object) -> str | None:
 COMMANDS = {"NuInteract": "import-nuinteract", "NuInstruct": "import-nuinstruct", "OmniDrive": "import-omnidrive"}
 
 
-def refuse_foreign(obj: object, expected: str, where: str, what: str) -> None:
+def refuse_foreign(obj: object, expected: str, where: str) -> None:
     """A DataError if ``obj`` (a loaded file) is another benchmark's QA: one line naming the file and the command."""
     other = foreign(obj)
     if other is not None and other != expected:
-        raise DataError(
-            f"{where}: a {other} QA file ({what} of another benchmark), not {expected}'s; import it with "
-            f"gdwm data {COMMANDS[other]}"
-        )
+        raise DataError(f"{where}: a QA file of {other}, not of {expected}; import it with gdwm data {COMMANDS[other]}")
 
 
 def load_json(path: Path, where: str) -> object:
@@ -191,6 +188,11 @@ def _base(cfg: BenchmarkConfig) -> _Base:
         raise DataError(
             f"data.nuscenes={root}: dataset '{ds.meta.get('name')}' is not a converted nuScenes dataset (format "
             f"{ds.meta.get('format')!r}); the records attach to nuScenes sample tokens (gdwm data convert-nuscenes)"
+        )
+    if "benchmark" in ds.meta:
+        raise DataError(
+            f"data.nuscenes={root}: dataset '{ds.meta.get('name')}' already holds {ds.meta['benchmark']['name']}'s QA; "
+            f"attach to the converted nuScenes dataset it was built on ({ds.meta['benchmark']['nuscenes']['root']})"
         )
     t = ds.table("frames")
     frames = {
@@ -265,10 +267,11 @@ def attach(
     overwrite: bool,
     benchmark: str,
     read: Callable[[Path], list[QARecord]],
-    notes: dict | None = None,
+    schema: type,
 ) -> Path:
     """Read ``source`` with ``read`` (which checks every record), match the records to the converted dataset at
-    ``cfg.nuscenes`` and publish the dataset at ``root``; returns it."""
+    ``cfg.nuscenes`` and publish the dataset at ``root``; returns it. ``schema``: ``cfg``'s dataclass (its fields
+    are the dataset's ``params``)."""
     if source is None:
         raise DataError(f"source= is required: the folder of {benchmark}'s released QA files")
     src = Path(source).expanduser().resolve()
@@ -283,16 +286,15 @@ def attach(
     if not matched:
         raise DataError(
             f"source={src}: none of the {len(records)} {benchmark} records names a sample of {base.ds.root} "
-            f"({len(base.frames)} frames; {_named(unmatched)}); is data.nuscenes the conversion of the nuScenes "
-            f"version the benchmark was built on?"
+            f"({len(base.frames)} frames; unknown: {_named(unmatched)}); is data.nuscenes the conversion of the "
+            f"nuScenes version the benchmark was built on?"
         )
     rows, views_dropped = _qa_rows(matched, base, benchmark)
     if unmatched:
         log.warning(
-            "%s: %d of %d records name a sample not in %s: %s (all in %s)",
-            benchmark, sum(unmatched.values()), len(records), base.ds.root, _named(unmatched), UNMATCHED_FILE,
-        )  # fmt: skip
-    params = content_params(cfg, type(cfg), skip=("nuscenes",))
+            "%s: %s not in %s, left out (all named in %s)", benchmark, _named(unmatched), base.ds.root, UNMATCHED_FILE
+        )
+    params = content_params(cfg, schema, skip=("nuscenes",))
     with DatasetWriter(root, cfg.name, source=f"{src} on {base.ds.root}", overwrite=overwrite, params=params) as w:
         for name in TABLES:
             if name != "qa":
@@ -323,7 +325,6 @@ def attach(
                     "named": sorted(unmatched)[:NAMED],
                     "file": UNMATCHED_FILE,
                 },
-                **(notes or {}),
             },
         }
     return w.root
@@ -336,11 +337,14 @@ image size, conventions, modalities, scene tokens)."""
 
 
 def _named(unmatched: Counter) -> str:
-    if not unmatched:
-        return "every sample token matched"
+    """``3 records of 2 sample tokens: a, b``, naming the first ``NAMED`` tokens."""
     names = ", ".join(sorted(unmatched)[:NAMED])
     more = f" and {len(unmatched) - NAMED} more" if len(unmatched) > NAMED else ""
-    return f"{sum(unmatched.values())} records of {len(unmatched)} unknown sample tokens: {names}{more}"
+    return f"{_count(sum(unmatched.values()), 'record')} of {_count(len(unmatched), 'sample token')}: {names}{more}"
+
+
+def _count(n: int, what: str) -> str:
+    return f"{n} {what}{'' if n == 1 else 's'}"
 
 
 def _qa_rows(matched: list[tuple[QARecord, str, int]], base: _Base, benchmark: str) -> tuple[list[dict], int]:
@@ -421,8 +425,8 @@ def render(root: str | Path) -> list[RenderableType]:
         if u.get("records"):
             more = f" and {u['sample_tokens'] - len(u['named'])} more" if u["sample_tokens"] > len(u["named"]) else ""
             out.append(
-                f"unmatched: {u['records']} records of {u['sample_tokens']} sample tokens not in the converted "
-                f"dataset: {', '.join(u['named'])}{more} (all in {Path(root) / u['file']})"
+                f"unmatched: {_count(u['records'], 'record')} of {_count(u['sample_tokens'], 'sample token')} not in "
+                f"the converted dataset, left out: {', '.join(u['named'])}{more} (all in {Path(root) / u['file']})"
             )
     return out
 

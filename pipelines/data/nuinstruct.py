@@ -66,7 +66,7 @@ class NuInstructConfig(BenchmarkConfig):
 
 def build(cfg: NuInstructConfig, root: Path, source: str | None, overwrite: bool = False) -> Path:
     """Attach the NuInstruct records under ``source`` to the converted dataset ``cfg.nuscenes`` at ``root``."""
-    return attach(cfg, root, source, overwrite, BENCHMARK, lambda src: read(src, cfg))
+    return attach(cfg, root, source, overwrite, BENCHMARK, lambda src: read(src, cfg), NuInstructConfig)
 
 
 def read(src: Path, cfg: NuInstructConfig) -> list[QARecord]:
@@ -79,7 +79,7 @@ def read(src: Path, cfg: NuInstructConfig) -> list[QARecord]:
         if split is None:
             raise DataError(f"{rel}: its name says no split (train, val or test), as NuInstruct's file names do")
         data = load_json(path, rel)
-        refuse_foreign(data, BENCHMARK, rel, "records")
+        refuse_foreign(data, BENCHMARK, rel)
         if not isinstance(data, list):
             raise DataError(f"{rel}: a JSON {type(data).__name__}, expected NuInstruct's list of records")
         out += [_record(raw, rel, i, split, kind_of) for i, raw in enumerate(data)]

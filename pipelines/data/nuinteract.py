@@ -84,7 +84,7 @@ class NuInteractConfig(BenchmarkConfig):
 
 def build(cfg: NuInteractConfig, root: Path, source: str | None, overwrite: bool = False) -> Path:
     """Attach the NuInteract records under ``source`` to the converted dataset ``cfg.nuscenes`` at ``root``."""
-    return attach(cfg, root, source, overwrite, BENCHMARK, lambda src: read(src, cfg))
+    return attach(cfg, root, source, overwrite, BENCHMARK, lambda src: read(src, cfg), NuInteractConfig)
 
 
 def read(src: Path, cfg: NuInteractConfig) -> list[QARecord]:
@@ -99,7 +99,7 @@ def read(src: Path, cfg: NuInteractConfig) -> list[QARecord]:
         if split is None:
             raise DataError(f"{rel}: its folder says no split (NuInteract/train or NuInteract/test)")
         data = load_plain(path, rel) if path.suffix == ".pkl" else load_json(path, rel)
-        refuse_foreign(data, BENCHMARK, rel, "records")
+        refuse_foreign(data, BENCHMARK, rel)
         if not isinstance(data, list):
             raise DataError(f"{rel}: a {type(data).__name__}, expected NuInteract's list of records")
         for i, raw in enumerate(data):
@@ -110,7 +110,7 @@ def read(src: Path, cfg: NuInteractConfig) -> list[QARecord]:
                 continue
             rel = _rel(src, path, "caption file")
             data = load_json(path, rel)
-            refuse_foreign(data, BENCHMARK, rel, "records")
+            refuse_foreign(data, BENCHMARK, rel)
             if not isinstance(data, list):
                 raise DataError(f"{rel}: a JSON {type(data).__name__}, expected a list of dense caption records")
             for i, raw in enumerate(data):

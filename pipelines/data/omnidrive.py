@@ -52,7 +52,7 @@ def build(cfg: OmniDriveConfig, root: Path, source: str | None, overwrite: bool 
     unknown = [p for p in cfg.parts if p not in PARTS]
     if unknown:
         raise DataError(f"data.parts: unknown part(s) {unknown} (OmniDrive's: {list(PARTS)})")
-    return attach(cfg, root, source, overwrite, BENCHMARK, lambda src: read(src, cfg))
+    return attach(cfg, root, source, overwrite, BENCHMARK, lambda src: read(src, cfg), OmniDriveConfig)
 
 
 def read(src: Path, cfg: OmniDriveConfig) -> list[QARecord]:
@@ -70,7 +70,7 @@ def read(src: Path, cfg: OmniDriveConfig) -> list[QARecord]:
 
 
 def _records(data: object, rel: str, part: str, split: str, token: str) -> list[QARecord]:
-    refuse_foreign(data, BENCHMARK, rel, "records")
+    refuse_foreign(data, BENCHMARK, rel)
 
     def record(question: str, answer: str, at: str, answer_field: str) -> QARecord:
         return QARecord(token, part, PARTS[part], question, answer, split, at, answer_field, ident=f"{part}/{token}")
