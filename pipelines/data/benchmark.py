@@ -421,6 +421,11 @@ def render(root: str | Path) -> list[RenderableType]:
             f"{b.get('name')}: {b.get('matched')} of {b.get('records')} records on frames of {b['nuscenes']['root']} "
             f"(released splits: {splits}; exact repeats dropped: {b.get('repeats_dropped', 0)})"
         )
+        if b.get("views_not_converted"):
+            out.append(
+                f"not attached: {_count(b['views_not_converted'], 'record')} reading only cameras the conversion left "
+                f"out ({', '.join(c for c in CAMERAS if c not in ds.cameras)})"
+            )
         u = b.get("unmatched", {})
         if u.get("records"):
             more = f" and {u['sample_tokens'] - len(u['named'])} more" if u["sample_tokens"] > len(u["named"]) else ""

@@ -12,10 +12,12 @@ from pathlib import Path
 
 import pytest
 
-from pipelines.data.benchmark import cameras_in, foreign, question_text, released_split_in
+from pipelines.data.benchmark import cameras_in, foreign, question_text, released_split_in, render
 from pipelines.data.layout import DataError
 from pipelines.data.nuinstruct import NuInstructConfig
 from pipelines.data.nuinstruct import build as build_nuinstruct
+from pipelines.data.nuinteract import NuInteractConfig
+from pipelines.data.nuinteract import build as build_nuinteract
 from pipelines.data.nuscenes import NuScenesConfig
 from pipelines.data.nuscenes import build as convert
 from pipelines.data.reader import GSQADataset
@@ -27,6 +29,7 @@ from tests.pipelines.data.fixtures_benchmarks import (
     UNMATCHED,
     nuinstruct_record,
     write_nuinstruct,
+    write_nuinteract,
 )
 from tests.pipelines.data.fixtures_nuscenes import write_nuscenes
 
@@ -67,6 +70,13 @@ def test_views_the_conversion_left_out_are_not_read(front_only, tmp_path):
     ds = GSQADataset(build_nuinstruct(NuInstructConfig(nuscenes=str(front_only)), tmp_path / "ni", str(src)))
     assert {tuple(v) for v in ds.qa().column("views").to_pylist()} == {("CAM_FRONT",)}
     assert ds.cameras == ["CAM_FRONT"] and ds.qa().num_rows == 14
+    # NuInteract's CAM_BACK caption reads a camera the conversion left out: counted, not attached
+    src = write_nuinteract(tmp_path / "nsrc")
+    ds = GSQADataset(build_nuinteract(NuInteractConfig(nuscenes=str(front_only)), tmp_path / "nn", str(src)))
+    assert ds.meta["benchmark"]["views_not_converted"] == 1 and ds.qa().num_rows == 13
+    lines = [str(p) for p in render(ds.root) if isinstance(p, str)]
+    assert "not attached: 1 record reading only cameras the conversion left out (CAM_FRONT_RIGHT, CAM_BACK_RIGHT, " \
+           "CAM_BACK, CAM_BACK_LEFT, CAM_FRONT_LEFT)" in lines  # fmt: skip
 
 
 def test_the_dataset_attached_to_must_be_a_conversion(front_only, tmp_path):
