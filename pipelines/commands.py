@@ -33,6 +33,21 @@ DATA: dict[str, Command] = {
         ["+args.out=null", "+args.gaussians=null"],
     ),
     "convert-nuscenes": Command(build_data, "convert nuScenes v1.0 tables on disk at source=DIR", ["data=nuscenes"]),
+    "import-nuinteract": Command(
+        build_data,
+        "attach NuInteract's released QA at source=DIR to the converted nuScenes dataset (data.nuscenes=...)",
+        ["data=nuinteract"],
+    ),
+    "import-nuinstruct": Command(
+        build_data,
+        "attach NuInstruct's released QA at source=DIR to the converted nuScenes dataset (data.nuscenes=...)",
+        ["data=nuinstruct"],
+    ),
+    "import-omnidrive": Command(
+        build_data,
+        "attach OmniDrive's released QA at source=DIR to the converted nuScenes dataset (data.nuscenes=...)",
+        ["data=omnidrive"],
+    ),
 }
 """Subcommands of ``gdwm data``, listed in this order (before gdwm's own ``info``). Each data option's
 ``build_command`` names the one that builds it, for gdwm's messages about a missing or mismatched dataset."""

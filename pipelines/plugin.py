@@ -17,7 +17,10 @@ def register(cs: ConfigStore) -> None:
         register_resolvers,
     )
     from pipelines.data.gaussiandwm import ReleaseConfig
+    from pipelines.data.nuinstruct import NuInstructConfig
+    from pipelines.data.nuinteract import NuInteractConfig
     from pipelines.data.nuscenes import NuScenesConfig
+    from pipelines.data.omnidrive import OmniDriveConfig
     from pipelines.data.synth.config import SynthConfig
     from pipelines.distill.config import DistillConfig
     from pipelines.evaluate.config import EvaluateGenConfig, EvaluateQAConfig
@@ -37,6 +40,9 @@ def register(cs: ConfigStore) -> None:
     cs.store(group="schema/data", name="synthetic_mini", node=SynthConfig)
     cs.store(group="schema/data", name="nuscenes", node=NuScenesConfig)
     cs.store(group="schema/data", name="gaussiandwm_release", node=ReleaseConfig)
+    cs.store(group="schema/data", name="nuinteract", node=NuInteractConfig)
+    cs.store(group="schema/data", name="nuinstruct", node=NuInstructConfig)
+    cs.store(group="schema/data", name="omnidrive", node=OmniDriveConfig)
     cs.store(group="schema/stage", name="reconstruct", node=ReconstructConfig)
     cs.store(group="schema/stage", name="distill", node=DistillConfig)
     cs.store(group="schema/stage", name="tokenizer", node=TokenizerStageConfig)

@@ -555,6 +555,11 @@ def content_params(cfg, cls: type, skip: Iterable[str] = ()) -> dict:
 class _Rows:
     schema: pa.Schema
     rows: list
+    table: pa.Table | None = None
+    """A whole table given at once (``put_table``), written instead of ``rows``."""
+
+    def written(self) -> pa.Table:
+        return self.table if self.table is not None else pa.Table.from_pylist(self.rows, schema=self.schema)
 
 
 class DatasetWriter:
@@ -616,6 +621,16 @@ class DatasetWriter:
 
     def extend(self, table: str, rows: Iterable[Mapping]) -> None:
         self._rows(table).rows.extend(rows)
+        if self._rows(table).table is not None:
+            raise DataError(f"{table}: rows added to a table given whole (put_table)")
+
+    def put_table(self, name: str, table: pa.Table) -> None:
+        """Write ``table`` (e.g. another dataset's, unchanged) as table ``name``, cast to its schema; rows added to
+        ``name`` before or after are an error."""
+        rows = self._rows(name)
+        if rows.rows:
+            raise DataError(f"{name}: rows were added before put_table")
+        rows.table = table.select(rows.schema.names).cast(rows.schema)
 
     def _rows(self, table: str) -> _Rows:
         # An optional table is written once a builder adds to it (even nothing), so other datasets stay unchanged.
@@ -634,6 +649,15 @@ class DatasetWriter:
     def copy_file(self, rel: str, src: Path) -> None:
         shutil.copyfile(src, self.path(rel))
 
+    def link_file(self, rel: str, src: Path) -> None:
+        """``src`` at ``rel`` as a hard link (no bytes copied: a dataset built on another shares its images), or a
+        copy where the filesystem cannot link (another device, no hard links)."""
+        dst = self.path(rel)
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copyfile(src, dst)
+
     def write_depth(self, rel: str, depth_HW: np.ndarray) -> None:
         if not cv2.imwrite(str(self.path(rel)), encode_depth(depth_HW)):
             raise DataError(f"{rel}: OpenCV could not write the depth image")
@@ -651,8 +675,8 @@ class DatasetWriter:
     # -- publish
     def _publish(self) -> None:
         assert self.tmp is not None
-        for name, t in self._tables.items():
-            table = pa.Table.from_pylist(t.rows, schema=t.schema)
+        written = {name: t.written() for name, t in self._tables.items()}
+        for name, table in written.items():
             pq.write_table(table, self.tmp / f"{name}.parquet")
         scenes = pq.read_table(self.tmp / "scenes.parquet").num_rows
         frames = pq.read_table(self.tmp / "frames.parquet").num_rows
@@ -663,9 +687,9 @@ class DatasetWriter:
             "name": self.name,
             "layout_version": LAYOUT_VERSION,
             "source": self.source,
-            "cameras": sorted({r["camera"] for r in self._tables["cameras"].rows}, key=_camera_order),
+            "cameras": sorted(set(written["cameras"].column("camera").to_pylist()), key=_camera_order),
             "num_scenes": scenes,
-            "scenes": [r["scene_id"] for r in self._tables["scenes"].rows],
+            "scenes": written["scenes"].column("scene_id").to_pylist(),
             "num_frames": frames,
             "num_files": nfiles,
             "bytes": nbytes,

@@ -106,6 +106,7 @@ def build(cfg: NuScenesConfig, root: Path, source: str | None, overwrite: bool =
             "velocity": "from neighbouring annotations (nuScenes box_velocity); 0 where unknown",
             "qa": "none: raw nuScenes has no QA",
             "scene_splits": split_scenes(names, cfg.val_fraction),
+            "scene_tokens": {s["name"]: s["token"] for s in scenes},  # benchmarks' QA name scenes by token
             "modalities": {"images": True, "cameras": True, "lidar": cfg.lidar, "boxes": True, "gaussians": False},
         }
     return w.root

@@ -25,10 +25,41 @@ class Suite(StrEnum):
     omnidrive = "omnidrive"
 
 
+class DecisionMatch(StrEnum):
+    head = "head"
+    """The text before the answer's first "." is the decision ("Turn left. Reason: ..."): our synthetic answers."""
+    first = "first"
+    """The label that occurs first in the text (whole words, case-insensitive): free-form answers that name their
+    decision anywhere ("The ego car should go straight because ...")."""
+
+
+class NuInstructProtocol(StrEnum):
+    pooled = "pooled"
+    """Each NuInstruct metric over all its rows at once, on our answer forms (the proxy suite on synthetic data)."""
+    per_subtask = "per_subtask"
+    """NuInstruct's own: each metric is the mean of its subtasks' values (the row's category, e.g.
+    ``perception-distance``), on NuInstruct's answer forms (``pipelines.evaluate.nuinstruct``)."""
+
+
 FUTURE_POSES = tuple(p.value for p in FuturePoses)
 SYNTH_DECISIONS = ["stop", "decelerate", "accelerate", "keep speed", "turn left", "turn right", "change lane left",
                    "change lane right", "go straight"]  # fmt: skip
 """``pipelines.data.synth.planning``'s speed and direction decisions (not imported: configs stay light)."""
+NUINTERACT_DECISIONS = ["go straight", "turn left", "turn right"]
+"""NuInteract's closed-set planning decisions (its planning subtasks ``planning_go_straight``, ``_turn_left``,
+``_turn_right``); ``conf/stage/evaluate_qa/suites/nuinteract.yaml`` lists the same (a test holds it)."""
+NUINSTRUCT_SUBTASKS = {
+    "regression": ["perception-distance", "perception-speed", "perception-instance_count", "prediction-motion_ego",
+                   "prediction-motion_other"],
+    "classification": ["perception-closest", "perception-status", "perception-in_the_same_road",
+                       "prediction-status_ego", "prediction-status_others"],
+    "detection": ["risk-approaching", "risk-braking", "risk-crossing", "risk-lane_change", "risk-non",
+                  "risk-on_coming", "risk-overtaking"],
+    "caption": ["reasoning-reasoning"],
+}  # fmt: skip
+"""NuInstruct's tasks (its ``task`` field) by the metric its Table 2 scores them with: MAE, accuracy, mAP, BLEU.
+Perception, prediction, risk and reasoning are its four groups; ``risk-non`` (no risk object) is released beside the
+six risk subtasks. ``conf/stage/evaluate_qa/suites/nuinstruct.yaml`` maps the same (a test holds it)."""
 
 
 @dataclass
@@ -61,7 +92,13 @@ class SuiteMapping:
     )
     """BLEU-4, CIDEr, ROUGE-L."""
     decision_labels: list[str] | None = field(default_factory=lambda: list(SYNTH_DECISIONS))
-    """Valid predicted decisions, lowercase (another one is malformed); null accepts any."""
+    """Valid predicted decisions, lowercase (another one is malformed); null accepts any (``head`` matching only)."""
+    decision_match: DecisionMatch = DecisionMatch.head
+    """How a decision is read from an answer: ``head`` (the text before the first ".") or ``first`` (the first of
+    ``decision_labels`` the text names; NuInteract's planning answers)."""
+    nuinstruct_protocol: NuInstructProtocol = NuInstructProtocol.pooled
+    """``pooled`` (the proxy: NuInteract-style rows scored with NuInstruct's metrics) or ``per_subtask``
+    (NuInstruct's own protocol on its imported records)."""
 
 
 @dataclass

@@ -32,6 +32,10 @@ NUMBER = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
 _NUM = NUMBER
 _PAIR = rf"\(\s*({_NUM})\s*,\s*({_NUM})\s*\)"
 _BOX = re.compile(rf"(?:<(\w+)>\s*)?<box>\s*{_PAIR}\s*,\s*{_PAIR}\s*</box>")
+_QUAD = rf"\[\s*({_NUM})\s*,\s*({_NUM})\s*,\s*({_NUM})\s*,\s*({_NUM})\s*\]"
+_BOX_LIST = re.compile(rf"(?:<(\w+)>\s*)?<box>\s*\[?\s*{_QUAD}")
+"""InternVL's grounding form (NuInteract's conversations): ``<box>[[x1, y1, x2, y2]]</box>``, the first box of the
+list; its 0-1000 normalised coordinates are compared as they are, like the references'."""
 _TRIPLE = rf"\(\s*({_NUM})\s*,\s*({_NUM})\s*,\s*({_NUM})\s*\)"
 _CENTRE = re.compile(rf"cent(?:er|re)\s*:?\s*{_TRIPLE}", re.IGNORECASE)
 _SIZE = re.compile(rf"size\s*:?\s*{_TRIPLE}", re.IGNORECASE)
@@ -52,10 +56,12 @@ class Scored:
 
 
 def parse_box(text: str) -> tuple[str | None, tuple[float, float, float, float]] | None:
-    """(camera tag or None, (x1, y1, x2, y2) with x1 <= x2, y1 <= y2) of the first ``<box>(x1,y1),(x2,y2)</box>``."""
-    m = _BOX.search(text or "")
-    if m is None:
+    """(camera tag or None, (x1, y1, x2, y2) with x1 <= x2, y1 <= y2) of the first ``<box>(x1,y1),(x2,y2)</box>`` or
+    ``<box>[[x1, y1, x2, y2]]</box>``."""
+    found = [m for m in (_BOX.search(text or ""), _BOX_LIST.search(text or "")) if m is not None]
+    if not found:
         return None
+    m = min(found, key=lambda f: f.start())
     x1, y1, x2, y2 = v = [float(t) for t in m.groups()[1:]]
     if not np.isfinite(v).all():
         return None

@@ -2,10 +2,13 @@
 
 Rows are dicts (or a pyarrow Table) with ``task``, ``category``, ``answer`` (reference) and ``prediction``; their
 order is the ranking of grounding answers for mAP. Which rows feed which metric is a ``SuiteMapping``
-(``conf/stage/evaluate_qa/suites``); the suites it lists as ``proxy`` are scored on rows that stand in for that
-benchmark's data. Every metric is labelled: ``official`` for BLEU/ROUGE-L/CIDEr on pycocoevalcap's PTB tokens (and
-the aggregates of official metrics only), ``approximate`` for the rest (no official public code exists for the
-grounding, planning and regression protocols) and for text metrics on the fallback tokenizer.
+(``conf/stage/evaluate_qa/suites``: ``proxy`` for synthetic data, ``nuinteract``, ``nuinstruct``, ``omnidrive`` for
+the benchmarks' imported records); the suites it lists as ``proxy`` are scored on rows that stand in for that
+benchmark's data. NuInstruct's metrics follow its own protocol on its records (``nuinstruct_protocol:
+per_subtask``, ``pipelines.evaluate.nuinstruct``) and the pooled proxy rules otherwise. Every metric is labelled:
+``official`` for BLEU/ROUGE-L/CIDEr on pycocoevalcap's PTB tokens (and the aggregates of official metrics only),
+``approximate`` for the rest (no benchmark publishes code for its grounding, planning, regression, classification or
+risk metrics) and for text metrics on the fallback tokenizer.
 """
 
 from __future__ import annotations
@@ -17,7 +20,8 @@ from fnmatch import fnmatchcase
 from typing import Any
 
 from gdwm.api import mean_of_printed
-from pipelines.evaluate.config import Suite, SuiteMapping
+from pipelines.evaluate import nuinstruct
+from pipelines.evaluate.config import DecisionMatch, NuInstructProtocol, Suite, SuiteMapping
 from pipelines.evaluate.grounding import Scored, score_2d, score_3d
 from pipelines.evaluate.planning import decision_accuracy, regression_mae
 from pipelines.evaluate.text import (
@@ -55,6 +59,19 @@ _ROUGE = "ROUGE-L x100, pycocoevalcap Rouge (beta 1.2)"
 _CIDER = "CIDEr x100, pycocoevalcap Cider (n 4, sigma 6, document frequencies of the scored references)"
 _MAP2D = "mean over IoU 0.50:0.05:0.95 of COCO 101-point AP, one box per sample ranked by sample order, unparsed = miss"
 _ACC = "exact match of the decision (text before the first '.'), malformed = wrong"
+_ACC_FIRST = "exact match of the decision (the first of the decision labels the text names), malformed = wrong"
+_PER_SUBTASK = "mean over its subtasks (row category) of "
+NUINSTRUCT_PER_SUBTASK = {
+    "nuinstruct/mae": _PER_SUBTASK + "the MAE of the answers' (x, y) vectors (mean of |dx|, |dy|) or first numbers, "
+    "answers' unit; unparsed predictions left out and counted (pipelines.evaluate.nuinstruct)",
+    "nuinstruct/acc": _PER_SUBTASK + "the accuracy: equal (class, camera) sets where the answer names objects, else "
+    "equal normalised text; malformed = wrong",
+    "nuinstruct/map": _PER_SUBTASK + "the mean per-sample AP of the answers' ranked <class>[camera,x1,y1,x2,y2] "
+    "objects (same class and camera, IoU 0.50:0.05:0.95, COCO 101-point); samples naming no object on either side not "
+    "scored",
+    "nuinstruct/bleu": _PER_SUBTASK + "BLEU-4 x100, pycocoevalcap Bleu(4) ('closest' reference length)",
+}
+"""``nuinstruct_protocol: per_subtask`` (NuInstruct's Table 2; VGGDrive's Average*)."""
 PROTOCOL = {
     "nuinteract/rdp_bleu": _BLEU,
     "nuinteract/rdp_rouge_l": _ROUGE,
@@ -71,7 +88,8 @@ PROTOCOL = {
     "nuinstruct/acc": _ACC,
     "nuinstruct/map": _MAP2D,
     "nuinstruct/bleu": _BLEU,
-    "nuinstruct/average_star": "(acc + map + bleu - mae) / 4 of the values as printed (2 decimals, half up), exact",
+    "nuinstruct/average_star": "max((acc + map + bleu - mae) / 4, 0) of the values as printed (2 decimals, half up), "
+    "exact, as VGGDrive defines it",
     "omnidrive/bleu": _BLEU,
     "omnidrive/cider": _CIDER,
     "omnidrive/rouge_l": _ROUGE,
@@ -102,6 +120,8 @@ class SuiteResult:
     """Metric name -> what stands in for the benchmark's data, for the metrics of the mapping's proxy suites."""
     tokenizer: Tokenizer | None = None
     """The text metrics' tokenizer (None: no text metric was scored)."""
+    subtasks: dict[str, dict[str, float]] = field(default_factory=dict)
+    """Metric name -> {subtask: value}, for the metrics that are means over subtasks (NuInstruct's protocol)."""
 
     def params(self) -> dict[str, str]:
         """``protocol/<metric>`` (the label) and ``proxy/<metric>`` for the stage run, where ``gdwm compare``
@@ -175,14 +195,24 @@ def score_predictions(
             proxy_note = f"; proxy: {out.proxy[name]}"
         out.protocol[name] = f"{lab}: {what}{rows_note}{proxy_note}"
 
-    def run(group: str, score: Callable[[list[str], list[str]], Scored | dict | None], names: dict[str, str]) -> None:
+    per_subtask = m.nuinstruct_protocol == NuInstructProtocol.per_subtask
+
+    def run(
+        group: str,
+        score: Callable[[list[str], list[str]], Scored | dict | None],
+        names: dict[str, str],
+        by_subtask: bool = False,
+    ) -> None:
         if need is not None and need.isdisjoint(names.values()):
             return
         patterns = getattr(m, group.replace("/", "_"))
         sel = _selected(rows, patterns)
         if not sel:
             return
-        scored = score([r["answer"] or "" for r in sel], [r["prediction"] or "" for r in sel])
+        if by_subtask:
+            scored = _subtask_means(sel, score, names, out, group)
+        else:
+            scored = score([r["answer"] or "" for r in sel], [r["prediction"] or "" for r in sel])
         if isinstance(scored, Scored):
             out.counts |= {
                 group: scored.samples,
@@ -195,14 +225,16 @@ def score_predictions(
         for key, name in names.items():
             if key in scored:
                 out.metrics[name] = scored[key]
-                what = PROTOCOL[name]
+                what = NUINSTRUCT_PER_SUBTASK[name] if by_subtask else PROTOCOL[name]
+                if what == _ACC and m.decision_match == DecisionMatch.first:
+                    what = _ACC_FIRST
                 if name in TEXT_METRICS:
                     what += f" on {PTB_PROTOCOL if tok is Tokenizer.ptb else FALLBACK_PROTOCOL} tokens"
                 lab = label(tok) if name in TEXT_METRICS else APPROXIMATE
                 record(name, lab, what, patterns)
 
     def accuracy(answers: Sequence[str], predictions: Sequence[str]) -> Scored:
-        return decision_accuracy(answers, predictions, m.decision_labels)
+        return decision_accuracy(answers, predictions, m.decision_labels, m.decision_match)
 
     def text(answers: Sequence[str], predictions: Sequence[str]) -> dict[str, float] | None:
         return text_scores(answers, predictions, tok)
@@ -223,23 +255,53 @@ def score_predictions(
         {"precision": "nuinteract/vg3d_pr", "map": "nuinteract/vg3d_map", "f1": "nuinteract/vg3d_f1"},
     )
     run("nuinteract/plan", accuracy, {"acc": "nuinteract/plan_acc"})
-    run("nuinstruct/regression", regression_mae, {"mae": "nuinstruct/mae"})
-    run("nuinstruct/classification", accuracy, {"acc": "nuinstruct/acc"})
-    run("nuinstruct/detection", score_2d, {"map": "nuinstruct/map"})
-    run("nuinstruct/caption", text, {"bleu": "nuinstruct/bleu"})
+    if per_subtask:
+        run("nuinstruct/regression", nuinstruct.regression_scores, {"mae": "nuinstruct/mae"}, by_subtask=True)
+        run("nuinstruct/classification", nuinstruct.classification_scores, {"acc": "nuinstruct/acc"}, by_subtask=True)
+        run("nuinstruct/detection", nuinstruct.risk_scores, {"map": "nuinstruct/map"}, by_subtask=True)
+        run("nuinstruct/caption", text, {"bleu": "nuinstruct/bleu"}, by_subtask=True)
+    else:
+        run("nuinstruct/regression", regression_mae, {"mae": "nuinstruct/mae"})
+        run("nuinstruct/classification", accuracy, {"acc": "nuinstruct/acc"})
+        run("nuinstruct/detection", score_2d, {"map": "nuinstruct/map"})
+        run("nuinstruct/caption", text, {"bleu": "nuinstruct/bleu"})
     run("omnidrive/text", text, {"bleu": "omnidrive/bleu", "cider": "omnidrive/cider", "rouge_l": "omnidrive/rouge_l"})
 
-    def aggregate(name: str, parts: Sequence[str], signs: Sequence[int] | None = None) -> None:
+    def aggregate(name: str, parts: Sequence[str], signs: Sequence[int] | None = None, floor: float | None = None):
         if all(p in out.metrics for p in parts):
             values = [out.metrics[p] * (signs[i] if signs else 1) for i, p in enumerate(parts)]
-            out.metrics[name] = mean_of_printed(values, PRINTED_DECIMALS)
+            mean = mean_of_printed(values, PRINTED_DECIMALS)
+            out.metrics[name] = mean if floor is None else max(mean, floor)
             official = all(out.labels[p] == OFFICIAL for p in parts)
             record(name, OFFICIAL if official else APPROXIMATE, PROTOCOL[name])
 
     aggregate("nuinteract/avg", AGGREGATES["nuinteract/avg"])
-    aggregate("nuinstruct/average_star", AGGREGATES["nuinstruct/average_star"], (1, 1, 1, -1))  # (acc+map+bleu-mae)/4
+    # VGGDrive's Average*: max((acc + map + bleu - mae) / 4, 0)
+    aggregate("nuinstruct/average_star", AGGREGATES["nuinstruct/average_star"], (1, 1, 1, -1), floor=0.0)
     aggregate("omnidrive/avg", AGGREGATES["omnidrive/avg"])
     return out
+
+
+def _subtask_means(sel: list[dict], score: Callable, names: dict[str, str], out: SuiteResult, group: str) -> Scored:
+    """One group's metric as the mean over its subtasks (NuInstruct's protocol): the subtasks' values go to
+    ``out.subtasks``, their sample counts are summed (``empty/<group>``: risk samples with nothing to score)."""
+    ((key, name),) = names.items()
+    mean, results = nuinstruct.per_subtask(sel, score, key)
+    total = Scored({} if mean is None else {key: mean}, 0)
+    for sub, r in results.items():
+        if isinstance(r, Scored):
+            total.samples += r.samples
+            total.malformed += r.malformed
+            total.bad_answers += r.bad_answers
+            if isinstance(r, nuinstruct.RiskScored):
+                out.counts[f"empty/{group}"] = out.counts.get(f"empty/{group}", 0) + r.empty
+            value = r.metrics.get(key)
+        else:  # text scores: every row counts
+            total.samples += sum(1 for row in sel if (row["category"] or "") == sub)
+            value = (r or {}).get(key)
+        if value is not None:
+            out.subtasks.setdefault(name, {})[sub] = value
+    return total
 
 
 def with_mapping(table: Any, mapping: SuiteMapping) -> Any:

@@ -10,7 +10,8 @@ and future horizons, the latter on recorded or LLM-predicted ego poses — and s
 Output: ``metrics.json`` (the stage's return value: the trial's metrics), ``protocol.json`` (what every metric
 used; QA: each labelled ``official`` or ``approximate``, and ``proxy`` where the suite mapping says so, as the stage
 run's params ``protocol/<metric>`` and ``proxy/<metric>`` that ``gdwm compare`` prints), and ``predictions.parquet``
-(QA, with the suite mapping in its schema metadata) or ``samples/<target>/...png`` (generation).
+(QA, with the suite mapping in its schema metadata) or ``samples/<target>/...png`` (generation). QA metrics that are
+means over subtasks (NuInstruct's protocol) also write each subtask's value to ``subtasks.json``.
 """
 
 from __future__ import annotations
@@ -103,6 +104,9 @@ def evaluate_qa(ctx: StageContext) -> dict:
     ctx.tracker.log_params({"split": cfg.split, "samples": len(samples), **result.params()})  # labels for compare
     ctx.tracker.log_artifact(str(ctx.out_dir / "predictions.parquet"))
     ctx.tracker.log_artifact(str(ctx.out_dir / "protocol.json"))
+    if result.subtasks:  # metrics that are means over subtasks (NuInstruct's protocol): each subtask's value
+        (ctx.out_dir / "subtasks.json").write_text(json.dumps(result.subtasks, indent=2, sort_keys=True))
+        ctx.tracker.log_artifact(str(ctx.out_dir / "subtasks.json"))
     return metrics
 
 

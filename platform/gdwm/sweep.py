@@ -225,8 +225,13 @@ def report(cfg: DictConfig, sweep: SweepConfig, argv: list[str]) -> int:
     """The comparison report of the sweep (``gdwm compare``) into workdir/reports/<name> and the sweep run."""
     from gdwm.compare.command import compare
 
-    extra = [a for a in user_overrides(argv) if a.split("=", 1)[0].split(".")[0] in ("workdir", "tracking", "ui")]
-    base = ["args=compare", *([f"compare={sweep.layout}"] if sweep.layout else []), f"args.sweep={sweep.name}"]
+    extra = [
+        a for a in user_overrides(argv) if a.split("=", 1)[0].split(".")[0] in ("workdir", "tracking", "ui", "compare")
+    ]
+    # a layout on the command line (the same sweep on another benchmark's data) wins over the sweep's own
+    given = any(a.split("=", 1)[0] == "compare" for a in extra)
+    layout = [f"compare={sweep.layout}"] if sweep.layout and not given else []
+    base = ["args=compare", *layout, f"args.sweep={sweep.name}"]
     if sweep.baseline:
         base.append(f"args.baseline={sweep.baseline}")
     return compare(load_config([*base, *extra]))

@@ -13,7 +13,7 @@ def test_help_lists_commands_and_groups():
     assert r.returncode == 0
     for text in ("data synth", "data import-gaussiandwm", "data convert-nuscenes", "data info", "config show"):
         assert text in r.stdout
-    assert "data       gaussiandwm_release, nuscenes, synthetic_mini" in r.stdout
+    assert "data       gaussiandwm_release, nuinstruct, nuinteract, nuscenes, omnidrive, synthetic_mini" in r.stdout
     assert "cluster    a100x16, local, sim" in r.stdout
     assert "experiment demo, gaussiandwm_pp" in r.stdout
     assert "sweep      conference_ablation, dual_condition, journal_ablation" in r.stdout
@@ -126,7 +126,11 @@ def test_the_data_commands_are_the_plugins():
 
     (ep,) = [e for e in entry_points(group=COMMAND_GROUP) if e.name == "data"]
     subs = ep.load()
-    assert list(subs) == ["synth", "import-gaussiandwm", "export-gaussiandwm", "convert-nuscenes"]
+    assert list(subs) == ["synth", "import-gaussiandwm", "export-gaussiandwm", "convert-nuscenes", "import-nuinteract",
+                          "import-nuinstruct", "import-omnidrive"]  # fmt: skip
     assert subs["import-gaussiandwm"].defaults == ["data=gaussiandwm_release"]
     assert subs["convert-nuscenes"].defaults == ["data=nuscenes"]
+    assert [subs[f"import-{b}"].defaults for b in ("nuinteract", "nuinstruct", "omnidrive")] == [
+        ["data=nuinteract"], ["data=nuinstruct"], ["data=omnidrive"]
+    ]  # fmt: skip
     assert subs["synth"].defaults == []

@@ -20,7 +20,8 @@ def _gdwm(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
 def test_conf_tree_has_the_design_groups():
     groups = {p.parts[0] for p in GROUP_YAMLS}
     assert {"data", "cluster", "tracking"} <= groups
-    assert {p.stem for p in (CONF / "data").glob("*.yaml")} == {"synthetic_mini", "nuscenes", "gaussiandwm_release"}
+    assert {p.stem for p in (CONF / "data").glob("*.yaml")} == {"synthetic_mini", "nuscenes", "gaussiandwm_release",
+                                                                 "nuinteract", "nuinstruct", "omnidrive"}  # fmt: skip
 
 
 def test_root_config_composes_with_defaults(tmp_path):
@@ -91,7 +92,7 @@ def test_server_tracking_takes_uri_from_environment(monkeypatch, tmp_path):
         (
             "data=synthetic_maxi",
             "config group 'data' has no option 'synthetic_maxi'; allowed values: "
-            "gaussiandwm_release, nuscenes, synthetic_mini.",
+            "gaussiandwm_release, nuinstruct, nuinteract, nuscenes, omnidrive, synthetic_mini.",
         ),
         ("cluster=a100x61", "config group 'cluster' has no option 'a100x61'; allowed values: a100x16, local, sim."),
         ("data.name=???", "missing mandatory value 'data.name': set it with data.name=VALUE."),

@@ -83,3 +83,12 @@ def test_empty_and_all_malformed():
     s = score_3d([GT3, GT3], ["", "no idea"])
     assert s.metrics == {"map": 0.0, "precision": 0.0, "f1": 0.0}
     assert s.malformed == 2
+
+
+def test_internvl_boxes_parse_like_ours():
+    assert parse_box("<ref>car</ref><box>[[420, 380, 610, 520]]</box>") == (None, (420.0, 380.0, 610.0, 520.0))
+    assert parse_box("<CAM_FRONT> <box>[[610, 520, 420, 380], [1, 2, 3, 4]]</box>") == (
+        "CAM_FRONT",
+        (420.0, 380.0, 610.0, 520.0),
+    )  # the first box of the list, corners ordered
+    assert parse_box("<box>[[1, 2, 3]]</box>") is None

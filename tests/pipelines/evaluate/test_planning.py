@@ -35,3 +35,15 @@ def test_regression_mae_leaves_malformed_out_and_counts_them():
     assert (s.samples, s.malformed) == (3, 1)
     none_parsed = regression_mae(answers[:1], ["unknown"])
     assert none_parsed.metrics == {} and none_parsed.malformed == 1
+
+
+def test_first_named_decision():
+    labels = ["go straight", "turn left", "turn right"]
+    assert parse_decision("The ego car should go straight.", labels, "first") == "go straight"
+    assert parse_decision("Turn right, then turn left.", labels, "first") == "turn right"
+    assert parse_decision("It should not go straightforward.", labels, "first") is None  # whole words only
+    assert parse_decision("Stop.", labels, "first") is None
+    s = decision_accuracy(["Go straight.", "Turn left now."], ["We go straight ahead.", "turn right"], labels, "first")
+    assert s.metrics == {"acc": 50.0} and s.malformed == 0
+    with pytest.raises(ValueError, match="match='first' needs the labels"):
+        parse_decision("Go straight.", None, "first")

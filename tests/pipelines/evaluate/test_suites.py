@@ -9,7 +9,7 @@ from omegaconf import OmegaConf
 from gdwm.compare.rounding import fmt
 from gdwm.config import load_config
 from pipelines.data.synth.planning import DIRECTION_DECISIONS, SPEED_DECISIONS
-from pipelines.evaluate.config import SYNTH_DECISIONS, EvaluateQAConfig
+from pipelines.evaluate.config import NUINSTRUCT_SUBTASKS, NUINTERACT_DECISIONS, SYNTH_DECISIONS, EvaluateQAConfig
 from pipelines.evaluate.grounding import score_2d
 from pipelines.evaluate.suites import (
     NUINTERACT_TEN,
@@ -214,5 +214,87 @@ def test_suite_mapping_is_a_config_group():
     from gdwm.config import ConfigError
 
     with pytest.raises(ConfigError, match="config group 'stage/evaluate_qa/suites' has no option 'real'; allowed "
-                                          "values: proxy"):  # fmt: skip
+                                          "values: nuinstruct, nuinteract, omnidrive, proxy"):  # fmt: skip
         load_config(["stage/evaluate_qa/suites=real"])
+
+
+def _suite(option: str) -> SuiteMapping:
+    cfg = load_config([f"stage/evaluate_qa/suites={option}"])
+    return EvaluateQAConfig(**OmegaConf.to_container(cfg.stage.evaluate_qa, enum_to_str=True)).suites
+
+
+def test_benchmark_suites_are_the_importers_taxonomies():
+    nuinteract, nuinstruct, omnidrive = (_suite(o) for o in ("nuinteract", "nuinstruct", "omnidrive"))
+    assert nuinteract.proxy == nuinstruct.proxy == omnidrive.proxy == []
+    assert nuinteract.decision_labels == NUINTERACT_DECISIONS and nuinteract.decision_match == "first"
+    assert nuinstruct.nuinstruct_protocol == "per_subtask"
+    assert {k: getattr(nuinstruct, f"nuinstruct_{k}") for k in NUINSTRUCT_SUBTASKS} == NUINSTRUCT_SUBTASKS
+    assert omnidrive.omnidrive_text == ["desc", "conv"]
+    for m, own in ((nuinteract, "nuinteract"), (nuinstruct, "nuinstruct"), (omnidrive, "omnidrive")):
+        others = [f for f in vars(m) if f.startswith(("nuinteract_", "nuinstruct_", "omnidrive_"))]
+        assert all(getattr(m, f) == [] for f in others if not f.startswith(own) and f != "nuinstruct_protocol"), own
+
+
+def test_nuinteract_suite_reads_the_decision_anywhere():
+    cases = [
+        ("plan", "planning_go_straight", "The ego car should go straight.", "Go straight, the road is clear."),
+        ("plan", "planning_turn_left", "Turn left at the junction.", "It should turn right, then turn left."),
+        ("plan", "planning_turn_right", "Turn right.", "Stop."),
+    ]
+    r = score_predictions(rows(cases), _suite("nuinteract"))
+    assert r.metrics == {"nuinteract/plan_acc": pytest.approx(100 / 3)}  # the first named decision counts
+    assert r.counts["malformed/nuinteract/plan"] == 1
+    assert "(the first of the decision labels the text names)" in r.protocol["nuinteract/plan_acc"]
+
+
+NUINSTRUCT_CASES = [
+    ("perception", "perception-distance", "(10.0, 1.0)", "(12.0, 0.0)"),  # 1.5
+    ("perception", "perception-distance", "(0.0, 0.0)", "(0.5, 0.5)"),  # 0.5
+    ("perception", "perception-instance_count", "3", "5"),  # 2
+    ("perception", "perception-closest", "<car>[c1,0,0,10,10]", "<car>[c1,1,1,9,9]"),  # right
+    ("prediction", "prediction-status_ego", "Moving.", "Stopped."),  # wrong
+    ("risk", "risk-overtaking", "<car>[c1,0,0,10,10];<pedestrian>[c4,20,20,30,40]", "<car>[c1,0,0,10,10]"),
+    ("risk", "risk-non", "There is no risk object.", "None."),  # nothing to score
+    ("reasoning", "reasoning-reasoning", DESC, DESC),
+]
+
+
+def test_nuinstruct_suite_is_its_protocol_per_subtask():
+    r = score_predictions(rows(NUINSTRUCT_CASES), _suite("nuinstruct"), tokenizer=Tokenizer.fallback)
+    m = r.metrics
+    assert m["nuinstruct/mae"] == pytest.approx((1.0 + 2.0) / 2)  # distance (1.5 + 0.5) / 2, count 2
+    assert m["nuinstruct/acc"] == pytest.approx((100.0 + 0.0) / 2)  # closest, status_ego
+    assert m["nuinstruct/map"] == pytest.approx(100 * 51 / 101)  # risk-non has no scored sample
+    assert m["nuinstruct/bleu"] == pytest.approx(100.0)
+    printed = [round_half_up(v, 2) for v in (50.0, 100 * 51 / 101, 100.0, -1.5)]
+    assert m["nuinstruct/average_star"] == math.fsum(printed) / 4
+    assert set(m) == {f"nuinstruct/{k}" for k in ("mae", "acc", "map", "bleu", "average_star")}
+    assert r.subtasks["nuinstruct/mae"] == {"perception-distance": 1.0, "perception-instance_count": 2.0}
+    assert r.counts["empty/nuinstruct/detection"] == 1 and r.counts["nuinstruct/detection"] == 1
+    assert r.labels["nuinstruct/map"] == "approximate" and r.proxy == {}
+    assert r.protocol["nuinstruct/mae"].startswith("approximate: mean over its subtasks (row category) of the MAE")
+
+
+def test_average_star_floors_at_zero():
+    cases = [("perception", "perception-distance", "(40.0, 0.0)", "(0.0, 0.0)"), NUINSTRUCT_CASES[4],
+             ("risk", "risk-overtaking", "<car>[c1,0,0,10,10]", "None."), ("reasoning", "reasoning-reasoning", DESC,
+             "No.")]  # fmt: skip
+    m = score_predictions(rows(cases), _suite("nuinstruct"), tokenizer=Tokenizer.fallback).metrics
+    assert (m["nuinstruct/mae"], m["nuinstruct/acc"], m["nuinstruct/map"]) == (20.0, 0.0, 0.0)
+    assert (m["nuinstruct/bleu"] - 20.0) / 4 < 0
+    assert m["nuinstruct/average_star"] == 0.0  # VGGDrive: max(..., 0)
+
+
+def test_omnidrive_suite_pools_descriptions_and_dialogue():
+    cases = [
+        ("desc", "scene_description", "The ego car drives on a wet road behind a grey car.", "A grey car ahead."),
+        ("conv", "general_dialogue", "Yes, a grey car drives ahead.", "Yes, a car drives ahead."),
+        ("vqa", "vqa", "The grey car ahead.", "Nothing."),  # trained on, not scored
+    ]
+    r = score_predictions(rows(cases), _suite("omnidrive"), tokenizer=Tokenizer.fallback)
+    want = text_scores(*texts(cases, {"scene_description", "general_dialogue"}), Tokenizer.fallback)
+    assert r.metrics["omnidrive/bleu"] == pytest.approx(want["bleu"])
+    assert r.metrics["omnidrive/cider"] == pytest.approx(want["cider"])
+    assert r.metrics["omnidrive/rouge_l"] == pytest.approx(want["rouge_l"])
+    assert r.metrics["omnidrive/avg"] == math.fsum(round_half_up(want[k], 2) for k in ("bleu", "cider", "rouge_l")) / 3
+    assert r.counts == {"omnidrive/text": 2} and r.proxy == {}
