@@ -94,6 +94,11 @@ class Lock:
         return hashlib.sha256(self.path.read_bytes()).hexdigest()
 
 
+def _names_an_input(via: str) -> bool:
+    """uv's ``# via`` line names pyproject.toml (``gdwm (pyproject.toml)``) or a ``.in`` file (``-r locks/cpu.in``)."""
+    return "(pyproject.toml)" in via or via.split()[-1].endswith(".in")
+
+
 def read_lock(path: Path) -> Lock:
     lock = Lock(Path(path))
     current = None
@@ -103,7 +108,7 @@ def read_lock(path: Path) -> Lock:
         elif m := _PIN.match(line):
             current = canonical(m["name"])
             lock.pins[current] = m["version"]
-        elif current and line.strip().startswith("#") and ("(pyproject.toml)" in line or line.split()[-1].endswith(".in")):
+        elif current and line.strip().startswith("#") and _names_an_input(line):
             lock.direct.add(current)
     return lock
 
