@@ -21,6 +21,8 @@ TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
 $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	@test -f $(LOCK) || { echo "make setup: no lock for this machine ($(LOCK) is missing; locks/ has $(notdir $(wildcard locks/*.txt))): run 'make lock LOCKS=$(basename $(notdir $(LOCK)))' where uv reaches PyPI, commit it, then make setup" >&2; exit 2; }
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@# the lock's pip first (hash-checked too): what installs the rest, with the cache of a recent pip
+	awk '/^pip==/{p=1} p&&/^ *#/{exit} p' $(LOCK) > $(VENV)/pip.lock && $(PY) -m pip install --quiet --require-hashes --no-deps -r $(VENV)/pip.lock
 	@# torch's CPU build is not on PyPI: take it from PyTorch's index unless pip already finds it (a local wheelhouse).
 	extra=""; torch=$$(grep -o '^torch==[^ ;]*+cpu' $(LOCK) || true); \
 	if [ -n "$$torch" ] && ! $(PY) -m pip install --quiet --dry-run --no-deps "$$torch" >/dev/null 2>&1; then extra="--extra-index-url $(TORCH_CPU_INDEX)"; fi; \

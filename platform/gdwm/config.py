@@ -358,6 +358,9 @@ def _register_platform(cs: ConfigStore) -> None:
 
     cs.store(group="schema/args", name="zoo", node=ZooArgs)
     cs.store(group="schema/args", name="cache", node=CacheArgs)
+    from gdwm.reproduce import ReproduceArgs
+
+    cs.store(group="schema/args", name="reproduce", node=ReproduceArgs)
 
 
 @cache

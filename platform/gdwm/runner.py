@@ -43,6 +43,7 @@ from gdwm.cache import CACHE_KEYS, Cache
 from gdwm.config import SweepConfig
 from gdwm.dag import Pipeline
 from gdwm.determinism import worker_env
+from gdwm.environment.runs import log_launch
 from gdwm.errors import one_line
 from gdwm.executor import (
     REUSED_SAME,
@@ -487,6 +488,7 @@ def launch(
     with _launch_lock(cfg, layout), driver_session(cfg) as tracking:
         parent = layout.open(tracking, cfg, rows, trials)
         summary.parent_run_id = parent
+        log_launch(tracking, cfg, parent, trials)  # the environment these runs ran in (gdwm.environment)
         # on the driver's node, as the tracking actor: a worker node lost mid-run must not take the board along
         here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
         progress = ProgressActor.options(scheduling_strategy=here).remote() if layout.sweep is None else None

@@ -186,3 +186,14 @@ def evaluate_gen(ctx: StageContext) -> dict:
     w = torch.load(ctx.upstream["diffusion"].path / "weights.pt", weights_only=True)["w"]
     (ctx.out_dir / "metrics.json").write_text(json.dumps({"psnr": float(w.mean())}))
     return {"psnr": float(w.mean())}
+
+
+@stage("lora", "1", config=["stage.toy_lora"], upstream=["tokenizer"], resources="train", seeded=True,
+       libraries=["toylib"])  # fmt: skip
+def lora_toylib(ctx: StageContext) -> None:
+    """The toy lora whose numbers depend on a library: ``toylib`` (a fake distribution tests/gdwm/test_reproduce.py
+    installs on PYTHONPATH) scales the rank; pipeline ``toy_lib``."""
+    import toylib
+
+    rank = float(ctx.cfg("stage.toy_lora")["rank"]) * toylib.SCALE
+    _train_stage(ctx, ctx.cfg("stage.toy_lora")["steps"], rank + seed_noise(ctx.seed))
