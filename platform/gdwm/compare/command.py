@@ -14,6 +14,7 @@ from gdwm.compare.samples import load_samples
 from gdwm.compare.stats import Settings
 from gdwm.compare.table import build_table
 from gdwm.config import sqlite_path, ui_url
+from gdwm.environment.runs import environment_note
 from gdwm.errors import CommandError
 from gdwm.term import console, err_console
 from gdwm.tracking import TrackingBackend
@@ -57,6 +58,8 @@ def compare(cfg: DictConfig) -> int:
         for problem in load_samples(backend, sel.rows, Path(tmp)):
             err_console.print(f"gdwm compare: warning: no per-sample statistics for {problem}", markup=False)
     table = build_table(sel.rows, layout, stats)
+    if note := environment_note(backend, sel.rows):  # rows computed in different environments (gdwm.environment)
+        table.notes.append(note)
     if not any(table.value(i, c.metric) is not None for i in range(len(table.rows)) for c in table.columns):
         logged = sorted({m for r in sel.rows for t in r.trials for m in t.metrics})
         err_console.print(

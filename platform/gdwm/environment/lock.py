@@ -123,17 +123,24 @@ class Installed:
 
 def installed() -> dict[str, Installed]:
     """Every distribution importable here (canonical name -> version): the first of a name on ``sys.path``, the one
-    ``importlib.metadata`` (and an import) resolves."""
+    ``importlib.metadata`` (and an import) resolves; a name installed editable anywhere on it counts as editable (the
+    ``<name>.egg-info`` an editable build leaves in the checkout is that install). Copies a package vendors inside
+    site-packages (Ray's ``thirdparty_files``) are that package's, not installs."""
     import importlib.metadata as md
+    import site
 
+    sites = [Path(p).resolve() for p in site.getsitepackages()]
+    entries = [p for p in sys.path if not any(s in Path(p or ".").resolve().parents for s in sites)]
     out: dict[str, Installed] = {}
-    for dist in md.distributions():
+    for dist in md.distributions(path=entries):
         name = dist.metadata["Name"]
-        if not name or canonical(name) in out:
+        if not name:
             continue
         direct = dist.read_text("direct_url.json")
         editable = bool(direct) and json.loads(direct).get("dir_info", {}).get("editable", False)
-        out[canonical(name)] = Installed(dist.version, editable)
+        first = out.setdefault(canonical(name), Installed(dist.version, editable))
+        if editable and not first.editable:
+            out[canonical(name)] = Installed(first.version, True)
     return out
 
 

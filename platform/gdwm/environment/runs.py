@@ -114,3 +114,63 @@ class Records:
                 return json.loads(Path(self.client.download_artifacts(run_id, path, tmp)).read_text())
         except Exception:  # a run deleted since, an artifact store out of reach: the record is unknown
             return None
+
+
+def tag_run(backend, run_id: str, rec: dict[str, Any]) -> None:
+    """Record ``rec`` on one run written directly to a backend (``gdwm regress``'s regression run)."""
+    backend.log_text(run_id, json.dumps(rec, indent=1, sort_keys=True), artifact(rec["digest"]))
+    backend.set_tags(run_id, {DIGEST_TAG: rec["digest"], RECORD_RUN_TAG: run_id, COMMIT_TAG: commit_tag(rec)})
+
+
+# ---- what readers say ------------------------------------------------------------------------------------------
+def baseline_flags(backend, base_id: str, now: dict[str, Any]) -> list[str]:
+    """``gdwm regress``: a baseline recorded in another environment (or without one) is a weaker reference."""
+    from gdwm.environment.differences import brief, differences
+
+    tags = backend.client.get_run(base_id).data.tags
+    base = Records(backend.client).of(tags)
+    if base is None:
+        return [f"baseline run {base_id[:12]} recorded no environment (an older gdwm): whether it ran in this one is "
+                "unknown; re-record it with --set-baseline"]  # fmt: skip
+    if base["digest"] == now["digest"]:
+        return []
+    return [f"baseline run {base_id[:12]} ran in another environment ({base['digest']} -> {now['digest']}: "
+            f"{brief(differences(base, now, code=False))}): float rounding may move its numbers; re-record it here "
+            "with --set-baseline"]  # fmt: skip
+
+
+def environment_note(backend, rows: list) -> str | None:
+    """``gdwm compare``'s note when a table's rows come from more than one environment (or some recorded none): which
+    rows ran where, and what differs from the first row's environment; None when they all ran in one."""
+    from gdwm.environment.differences import brief, differences
+    from gdwm.environment.record import summary
+
+    records = Records(backend.client)
+    where: dict[str, list[str]] = {}  # digest ("" = none recorded) -> the rows (and seeds) that ran there
+    for row in rows:
+        trials = row.counted or row.trials
+        for t in trials:
+            label = row.label if len(trials) == 1 else f"{row.label} (seed {t.seed})"
+            where.setdefault(t.tags.get(DIGEST_TAG, ""), []).append(label)
+    recorded = [d for d in where if d]
+    if len(recorded) < 2 and (not recorded or "" not in where):
+        return None
+    first = records.of({DIGEST_TAG: recorded[0], RECORD_RUN_TAG: _holder(rows, recorded[0])}) if recorded else None
+    parts = []
+    for d, labels in where.items():
+        rec = records.of({DIGEST_TAG: d, RECORD_RUN_TAG: _holder(rows, d)}) if d else None
+        if not d:
+            parts.append(f"{', '.join(labels)}: no environment recorded (an older gdwm)")
+        elif rec is None or first is None:
+            parts.append(f"{', '.join(labels)}: environment {d} (its record is gone)")
+        elif d == recorded[0]:
+            parts.append(f"{', '.join(labels)}: environment {d} ({summary(rec)})")
+        else:
+            parts.append(f"{', '.join(labels)}: environment {d}, which differs from {recorded[0]} in: "
+                         f"{brief(differences(first, rec, code=False))}")  # fmt: skip
+    return ("Environments differ between rows (numbers may move by float rounding across CPUs and library "
+            "versions): " + "; ".join(parts) + ".")  # fmt: skip
+
+
+def _holder(rows: list, digest: str) -> str | None:
+    return next((t.tags.get(RECORD_RUN_TAG) for r in rows for t in r.trials if t.tags.get(DIGEST_TAG) == digest), None)
