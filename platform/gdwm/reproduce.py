@@ -422,6 +422,7 @@ def _report(backend, run, trials: list[Recorded], summary, cfg: DictConfig, work
 
     from gdwm.cache import Cache
     from gdwm.environment.differences import differences
+    from gdwm.environment.record import commit_tag
     from gdwm.environment.record import summary as env_summary
     from gdwm.environment.runs import Records
     from gdwm.runner import entry_keys
@@ -437,7 +438,8 @@ def _report(backend, run, trials: list[Recorded], summary, cfg: DictConfig, work
         old_cache = Cache(rec.config["cache"]["uri"])
         m_rows = metric_rows(rec.metrics, res.metrics) if res.ok else []
         e_rows = entry_rows(old_cache, new_cache, rec.entries, entry_keys(res.results)) if res.ok else []
-        env = differences(rec.environment, now_env) if rec.environment and now_env else None
+        # gdwm's own code is said once before the start (_warn_code) and is in every entry's key: not repeated here
+        env = differences(rec.environment, now_env, code=False) if rec.environment and now_env else None
         title = f"'{rec.label}' seed {rec.seed} (run {rec.run_id[:12]} -> {res.trial.run_id[:12]})"
         if not res.ok:
             console.print(f"{title}: the reproduction failed: {'; '.join(res.failed.values()) or 'blocked'}")
@@ -469,6 +471,7 @@ def _report(backend, run, trials: list[Recorded], summary, cfg: DictConfig, work
             "entries": [dict(zip(("stage", "scene", "recorded", "reproduced", "verdict"), r, strict=True))
                         for r in e_rows],
             "environment": env,
+            "code": [commit_tag(x) if x else None for x in (rec.environment, now_env)],
         })  # fmt: skip
     path = workdir / REPORT
     path.write_text(json.dumps(report, indent=1))
