@@ -1,10 +1,10 @@
 """`gdwm reproduce` end to end through the real CLI on the toy pipeline (local Ray, 2 CPUs), with a fake library.
 
-Pipeline ``toy_lib`` is the toy DAG whose lora scales the rank by ``toylib.SCALE``: ``toylib`` is a fake distribution
-(a module and its dist-info) on PYTHONPATH, as the cache's library tests plant one (tests/gdwm/test_code_keys.py).
-A trial recorded with toylib 1.0 is reproduced in a fresh workdir: equal in every metric and cache entry; then with
-toylib 2.0 (SCALE 1.5) the report names the metrics that moved, the entries whose key and bytes moved, and the
-library with both versions. Bad input exits 2 before anything runs.
+Pipeline ``toy_lib`` is the toy DAG whose lora scales the rank by the major version of ``toylib``, a fake distribution
+(a dist-info) on PYTHONPATH, as the cache's library tests plant one (tests/gdwm/test_code_keys.py). A trial recorded
+with toylib 1.0 is reproduced in a fresh workdir: equal in every metric and cache entry; then with toylib 2.0 the
+report names the metrics that moved, the entries whose key and bytes moved, and the library with both versions. Bad
+input exits 2 before anything runs.
 """
 
 from __future__ import annotations
@@ -26,18 +26,16 @@ class LibToy(Toy):
     def __init__(self, root: Path):
         super().__init__(root)
         self.site = root / "site"
-        self.library("1.0", 1.0)
+        self.library("1.0")
 
-    def library(self, version: str, scale: float) -> None:
-        """Install a fake ``toylib`` of ``version`` whose ``SCALE`` is ``scale``."""
-        for old in self.site.glob("toylib*/*"):
-            old.unlink()
-        (self.site / "toylib").mkdir(parents=True, exist_ok=True)
-        (self.site / "toylib" / "__init__.py").write_text(f"SCALE = {scale}\n")
+    def library(self, version: str) -> None:
+        """Install a fake ``toylib`` distribution of ``version`` (what importlib.metadata reports)."""
         for old in self.site.glob("toylib-*.dist-info"):
+            for f in old.iterdir():
+                f.unlink()
             old.rmdir()
         dist = self.site / f"toylib-{version}.dist-info"
-        dist.mkdir()
+        dist.mkdir(parents=True)
         (dist / "METADATA").write_text(f"Metadata-Version: 2.1\nName: toylib\nVersion: {version}\n")
 
     def env(self, **inject: str) -> dict:
@@ -94,17 +92,17 @@ def test_a_toy_trial_reproduces_equal_in_every_metric_and_entry(recorded):
 
 
 def test_a_library_change_names_the_library_and_the_metrics_it_moved(recorded):
-    recorded.library("2.0", 1.5)  # the lora's rank x 1.5: plan_acc 48 -> 72
+    recorded.library("2.0")  # the lora's rank x 2: plan_acc 48 -> 96
     try:
         fresh = recorded.root / "lib2"
         r = recorded.reproduce(recorded.run_id[:12], f"workdir={fresh}", f"args.store={recorded.work}")
     finally:
-        recorded.library("1.0", 1.0)
+        recorded.library("1.0")
     assert r.returncode == 1, r.stdout[-3000:] + r.stderr[-3000:]
     report = json.loads((fresh / "reproduce.json").read_text())
     metrics = {m["metric"]: m for m in _rows(report, "metrics")}
-    assert (metrics["nuinteract/plan_acc"]["recorded"], metrics["nuinteract/plan_acc"]["reproduced"]) == ("48", "72")
-    assert metrics["nuinteract/plan_acc"]["verdict"] == "differs by +24 (+50.00%)"
+    assert (metrics["nuinteract/plan_acc"]["recorded"], metrics["nuinteract/plan_acc"]["reproduced"]) == ("48", "96")
+    assert metrics["nuinteract/plan_acc"]["verdict"] == "differs by +48 (+100.00%)"
     assert metrics["nuinstruct/mae"]["verdict"].startswith("differs by ")
     entries = {e["stage"]: e["verdict"] for e in _rows(report, "entries")}
     assert entries["reconstruct"] == entries["tokenizer"] == "equal (1 file)"
