@@ -27,6 +27,8 @@ $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	extra=""; torch=$$(grep -o '^torch==[^ ;]*+cpu' $(LOCK) || true); \
 	if [ -n "$$torch" ] && ! $(PY) -m pip install --quiet --dry-run --no-deps "$$torch" >/dev/null 2>&1; then extra="--extra-index-url $(TORCH_CPU_INDEX)"; fi; \
 	$(PY) -m pip install --quiet --require-hashes -r $(LOCK) $$extra
+	@# an egg-info an older editable build left in the checkout would shadow the installed metadata (entry points)
+	rm -rf *.egg-info
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
 	$(PY) platform/gdwm/environment/lock.py sync $(LOCK)
 	@# The report's browser test drives the system chromium (no browser download); never fails the setup.

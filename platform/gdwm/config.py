@@ -147,6 +147,18 @@ class CacheArgs:
     looked it up can still read it."""
 
 
+@dataclass
+class ReproduceArgs:
+    """``gdwm reproduce RUN_ID [workdir=DIR]`` (``RUN_ID`` sets ``args.run``; ``gdwm.reproduce``)."""
+
+    run: str | None = None
+    """The run to reproduce, by id or a unique prefix of at least 8 characters: a trial, a row (its seeds), a
+    ``gdwm run`` or a sweep (every trial)."""
+    store: str | None = None
+    """Where it is recorded: a workdir or an MLflow tracking URI. null = the configured store (``tracking.uri``) as
+    the command line sets it without its ``workdir=``, which names the fresh workdir."""
+
+
 class SceneErrorPolicy(StrEnum):
     fail = "fail"
     skip = "skip"
@@ -358,8 +370,6 @@ def _register_platform(cs: ConfigStore) -> None:
 
     cs.store(group="schema/args", name="zoo", node=ZooArgs)
     cs.store(group="schema/args", name="cache", node=CacheArgs)
-    from gdwm.reproduce import ReproduceArgs
-
     cs.store(group="schema/args", name="reproduce", node=ReproduceArgs)
 
 

@@ -26,18 +26,6 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 
-@dataclass
-class ReproduceArgs:
-    """``gdwm reproduce RUN_ID [workdir=DIR]`` (``RUN_ID`` sets ``args.run``)."""
-
-    run: str | None = None
-    """The run to reproduce, by id or a unique prefix of at least 8 characters: a trial, a row (its seeds), a
-    ``gdwm run`` or a sweep (every trial)."""
-    store: str | None = None
-    """Where it is recorded: a workdir or an MLflow tracking URI. null = the configured store (``tracking.uri``) as
-    the command line sets it without its ``workdir=``, which names the fresh workdir."""
-
-
 class ReproduceError(Exception):
     """Bad input, found before anything runs (exit 2): the message names the run and the key."""
 
@@ -361,8 +349,8 @@ def reproduce(cfg: DictConfig, argv: list[str]) -> int:
     configs = [rebuild(t, workdir) for t in trials]
 
     names = ", ".join(f"'{t.label}' seed {t.seed}" for t in trials)
-    console.print(f"reproducing run {run.info.run_id} ({run.data.tags.get('gdwm.kind')}: {names}) from {uri} in a "
-                  f"fresh workdir {workdir}", markup=False)  # fmt: skip
+    console.print(f"reproducing {run.data.tags.get('gdwm.kind')} {run.info.run_id}: {names}", markup=False)
+    console.print(f"  recorded in {uri}; running again in the fresh workdir {workdir}", markup=False)
     _warn_code(trials)
     new_keys = sorted({k for _, keys in configs for k in keys})
     if new_keys:
@@ -444,13 +432,14 @@ def _report(backend, run, trials: list[Recorded], summary, cfg: DictConfig, work
         if not res.ok:
             console.print(f"{title}: the reproduction failed: {'; '.join(res.failed.values()) or 'blocked'}")
             differs += 1
-        table = Table(title=f"{title}: metrics", header_style="bold")
+        console.print(title, markup=False)
+        table = Table(header_style="bold")
         for col in ("metric", "recorded", "reproduced", "verdict"):
             table.add_column(col)
         for r in m_rows:
             table.add_row(*r)
         console.print(table)
-        table = Table(title=f"{title}: cache entries", header_style="bold")
+        table = Table(header_style="bold")
         for col in ("stage", "scene", "recorded key", "reproduced key", "verdict"):
             table.add_column(col)
         for r in e_rows:

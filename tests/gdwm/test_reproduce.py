@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from omegaconf import OmegaConf
 
 from gdwm.environment.runs import CONFIG_ARTIFACT
 from tests.gdwm.test_run import Toy, _ok
@@ -73,7 +74,8 @@ def test_a_toy_trial_reproduces_equal_in_every_metric_and_entry(recorded):
     fresh = recorded.root / "again"
     r = recorded.reproduce(recorded.run_id, f"workdir={fresh}", f"args.store={recorded.work}")
     _ok(r)
-    assert f"reproducing run {recorded.run_id} (run: " in r.stdout and f"fresh workdir {fresh}" in r.stdout
+    assert f"reproducing run {recorded.run_id}: 'run-toy_lib-" in r.stdout
+    assert f"running again in the fresh workdir {fresh}" in r.stdout
     report = json.loads((fresh / "reproduce.json").read_text())
     metrics, entries = _rows(report, "metrics"), _rows(report, "entries")
     assert {m["metric"] for m in metrics} == {"acc", "nuinteract/plan_acc", "nuinstruct/mae"}
@@ -151,3 +153,49 @@ def test_bad_input_exits_2_naming_the_run_and_the_key(recorded, tmp_path):
         "recorded?)"
     )
     assert not any((tmp_path / d).exists() for d in "abcd")  # refused before anything ran
+
+
+# ---- in process: what a run stands for, and the config composed again ------------------------------------------
+def test_a_sweep_row_or_run_stands_for_its_trials_in_order(tmp_path):
+    from gdwm.reproduce import ReproduceError, trial_runs
+    from gdwm.tracking import TrackingBackend
+
+    b = TrackingBackend(f"sqlite:///{tmp_path}/mlflow.db", "gdwm", str(tmp_path / "art"))
+    sweep = b.create_run("sweep", {"gdwm.kind": "sweep"})
+    ids = {}
+    for index in (1, 0):  # rows found in any order come back in table order, their seeds in seed order
+        row = b.create_run(f"row{index}", {"gdwm.kind": "row", "gdwm.trial_index": str(index)}, sweep)
+        for seed in (2, 0):
+            ids[index, seed] = b.create_run(f"t{index}{seed}", {"gdwm.kind": "trial", "gdwm.seed": str(seed)}, row)
+        ids[index] = row
+    stage = b.create_run("lora", {"gdwm.kind": "stage", "gdwm.stage": "lora"}, sweep)
+
+    def of(run_id):
+        return [r.info.run_id for r in trial_runs(b, b.client.get_run(run_id))]
+
+    assert of(sweep) == [ids[0, 0], ids[0, 2], ids[1, 0], ids[1, 2]]
+    assert of(ids[1]) == [ids[1, 0], ids[1, 2]] and of(ids[1, 2]) == [ids[1, 2]]
+    with pytest.raises(ReproduceError, match=f"run {stage} is a stage run: .* its launch is run {sweep}"):
+        of(stage)
+
+
+def test_a_recorded_config_is_set_over_todays(tmp_path):
+    from gdwm.config import load_config
+    from gdwm.reproduce import ReproduceError, moved, overlay
+
+    cfg = load_config([f"workdir={tmp_path}"])
+    recorded = OmegaConf.to_container(cfg, resolve=True)
+    recorded["stage"]["lora"]["rank"] = 3  # a recorded value wins over today's default
+    recorded["pipeline"]["stages"].pop("evaluate_gen")  # a free-form mapping becomes the recorded one exactly
+    del recorded["run"]["max_retries"]  # a setting new since the recording keeps today's default, and is listed
+    assert overlay(cfg, recorded) == ["run.max_retries"]
+    assert cfg.stage.lora.rank == 3 and "evaluate_gen" not in cfg.pipeline.stages
+    recorded["cache"]["old_knob"] = 1
+    with pytest.raises(ReproduceError, match=r"^'cache.old_knob' is no setting any more \(removed since"):
+        overlay(load_config([f"workdir={tmp_path}"]), recorded)
+    recorded["cache"].pop("old_knob")
+    recorded["run"]["max_retries"] = "many"
+    with pytest.raises(ReproduceError, match=r"^'run.max_retries': the recorded value 'many' is not valid any more"):
+        overlay(load_config([f"workdir={tmp_path}"]), recorded)
+    assert moved({"a": "/w/cache", "b": ["sqlite:////w/mlflow.db"], "c": "/work"}, "/w", "/new") == {
+        "a": "/new/cache", "b": ["sqlite:////new/mlflow.db"], "c": "/work"}  # fmt: skip

@@ -130,17 +130,25 @@ def installed() -> dict[str, Installed]:
     import site
 
     sites = [Path(p).resolve() for p in site.getsitepackages()]
-    entries = [p for p in sys.path if not any(s in Path(p or ".").resolve().parents for s in sites)]
     out: dict[str, Installed] = {}
-    for dist in md.distributions(path=entries):
-        name = dist.metadata["Name"]
-        if not name:
+    for entry in sys.path:
+        where = Path(entry or ".").resolve()
+        if any(s in where.parents for s in sites) or not where.is_dir():
             continue
-        direct = dist.read_text("direct_url.json")
-        editable = bool(direct) and json.loads(direct).get("dir_info", {}).get("editable", False)
-        first = out.setdefault(canonical(name), Installed(dist.version, editable))
-        if editable and not first.editable:
-            out[canonical(name)] = Installed(first.version, True)
+        for meta in sorted(where.glob("*.*-info")):
+            # ``name-version.dist-info`` names both (the wheel spec): 190 distributions in 10 ms, not 0.5 s of
+            # METADATA parsing; anything else (an egg-info) is read
+            name, _, version = meta.name.rsplit(".", 1)[0].partition("-")
+            if meta.suffix != ".dist-info" or not version:
+                dist = md.Distribution.at(meta)
+                name, version = dist.metadata["Name"], dist.version
+            if not name:
+                continue
+            direct = meta / "direct_url.json"
+            editable = direct.is_file() and json.loads(direct.read_text()).get("dir_info", {}).get("editable", False)
+            first = out.setdefault(canonical(name), Installed(version, editable))
+            if editable and not first.editable:
+                out[canonical(name)] = Installed(first.version, True)
     return out
 
 
