@@ -349,12 +349,14 @@ def reproduce(cfg: DictConfig, argv: list[str]) -> int:
     configs = [rebuild(t, workdir) for t in trials]
 
     names = ", ".join(f"'{t.label}' seed {t.seed}" for t in trials)
-    console.print(f"reproducing {run.data.tags.get('gdwm.kind')} {run.info.run_id}: {names}", markup=False)
-    console.print(f"  recorded in {uri}; running again in the fresh workdir {workdir}", markup=False)
+    console.print(f"reproducing {run.data.tags.get('gdwm.kind')} {run.info.run_id}: {names}", markup=False,
+                  soft_wrap=True)  # fmt: skip
+    console.print(f"  recorded in {uri}; running again in the fresh workdir {workdir}", markup=False, soft_wrap=True)
     _warn_code(trials)
     new_keys = sorted({k for _, keys in configs for k in keys})
     if new_keys:
-        console.print(f"settings new since the recording (today's defaults): {', '.join(new_keys)}", markup=False)
+        console.print(f"settings new since the recording (today's defaults): {', '.join(new_keys)}", markup=False,
+                      soft_wrap=True)  # fmt: skip
 
     summary = _launch(run, trials, [c for c, _ in configs])
     with quiet_downloads():
@@ -432,7 +434,7 @@ def _report(backend, run, trials: list[Recorded], summary, cfg: DictConfig, work
         if not res.ok:
             console.print(f"{title}: the reproduction failed: {'; '.join(res.failed.values()) or 'blocked'}")
             differs += 1
-        console.print(title, markup=False)
+        console.print(title, markup=False, soft_wrap=True)
         table = Table(header_style="bold")
         for col in ("metric", "recorded", "reproduced", "verdict"):
             table.add_column(col)
@@ -450,7 +452,8 @@ def _report(backend, run, trials: list[Recorded], summary, cfg: DictConfig, work
         elif env:
             console.print("environment differences (recorded -> now):\n  " + "\n  ".join(env), markup=False)
         else:
-            console.print(f"environment: the same ({now_env['digest']}: {env_summary(now_env)})", markup=False)
+            console.print(f"environment: the same ({now_env['digest']}: {env_summary(now_env)})", markup=False,
+                          soft_wrap=True)  # fmt: skip
         bad_m = [r for r in m_rows if r[3] != "equal"]
         bad_e = [r for r in e_rows if not r[4].startswith("equal")]  # equal bytes under another key reproduce
         differs += bool(bad_m or bad_e)
@@ -467,7 +470,7 @@ def _report(backend, run, trials: list[Recorded], summary, cfg: DictConfig, work
     fresh.log_artifact(summary.parent_run_id, str(path))
     n = len(trials)
     if differs:
-        console.print(f"[red]not reproduced[/red]: {differs} of {n} trial(s) differ (report: {path})")
+        console.print(f"[red]not reproduced[/red]: {differs} of {n} trial(s) differ (report: {path})", soft_wrap=True)
         return 1
-    console.print(f"[green]reproduced[/green]: every metric and cache entry of {n} trial(s) equal (report: {path})")
+    console.print(f"[green]reproduced[/green]: every metric and cache entry of {n} trial(s) equal (report: {path})", soft_wrap=True)
     return 0
