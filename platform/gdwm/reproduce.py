@@ -470,7 +470,9 @@ def _report(backend, run, trials: list[Recorded], summary, cfg: DictConfig, work
     fresh.log_artifact(summary.parent_run_id, str(path))
     n = len(trials)
     if differs:
-        console.print(f"[red]not reproduced[/red]: {differs} of {n} trial(s) differ (report: {path})", soft_wrap=True)
+        console.print(f"[red]not reproduced[/red]: {differs} of {n} trial(s) differ (report: {path})",
+                      soft_wrap=True)  # fmt: skip
         return 1
-    console.print(f"[green]reproduced[/green]: every metric and cache entry of {n} trial(s) equal (report: {path})", soft_wrap=True)
+    console.print(f"[green]reproduced[/green]: every metric and cache entry of {n} trial(s) equal (report: {path})",
+                  soft_wrap=True)  # fmt: skip
     return 0
