@@ -45,8 +45,8 @@ class Recorded:
     label: str
     seed: int
     status: str
+    """MLflow's: FINISHED, or FAILED for a trial whose stage failed (its reproduction is expected to fail too)."""
     metrics: dict[str, float]
-    tags: dict[str, str]
     config: dict[str, Any]
     """Its resolved config (``config.yaml``)."""
     entries: dict[str, list[str]]
@@ -112,7 +112,7 @@ def _children(backend, run, kind: str) -> list:
 
 def trial_runs(backend, run) -> list:
     """The trial runs ``run`` stands for: itself (a trial, a one-seed ``gdwm run``), a row's or a multi-seed run's
-    trials, or every trial of a sweep's rows (oldest row first)."""
+    trials, or every trial of a sweep's rows (in table order)."""
     kind = run.data.tags.get("gdwm.kind")
     if kind == "trial":
         return [run]
@@ -148,7 +148,7 @@ def recorded(backend, run) -> Recorded:
             entries = {}  # a failed trial records none
     return Recorded(
         run.info.run_id, label, int(tags.get("gdwm.seed", config.get("seed", 0))), run.info.status,
-        {k: v for k, v in run.data.metrics.items() if k not in NOT_METRICS}, tags, config, entries,
+        {k: v for k, v in run.data.metrics.items() if k not in NOT_METRICS}, config, entries,
         Records(backend.client).of(tags),
     )  # fmt: skip
 
@@ -431,8 +431,9 @@ def _report(backend, run, trials: list[Recorded], summary, cfg: DictConfig, work
         # gdwm's own code is said once before the start (_warn_code) and is in every entry's key: not repeated here
         env = differences(rec.environment, now_env, code=False) if rec.environment and now_env else None
         title = f"'{rec.label}' seed {rec.seed} (run {rec.run_id[:12]} -> {res.trial.run_id[:12]})"
-        if not res.ok:
-            console.print(f"{title}: the reproduction failed: {'; '.join(res.failed.values()) or 'blocked'}")
+        if res.ok != (rec.status == "FINISHED"):
+            now = "finished" if res.ok else f"failed: {'; '.join(res.failed.values()) or 'blocked'}"
+            console.print(f"{title}: recorded {rec.status}, the reproduction {now}", markup=False, soft_wrap=True)
             differs += 1
         console.print(title, markup=False, soft_wrap=True)
         table = Table(header_style="bold")
