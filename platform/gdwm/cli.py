@@ -36,6 +36,8 @@ class Command:
     """``--flags`` the command accepts; they reach ``run`` in its argument list."""
     options: tuple[str, ...] = ()
     """``--flags`` taking a value (``--keep-last 3`` or ``--keep-last=3``); they reach ``run`` as ``--flag=VALUE``."""
+    positional: str | None = None
+    """The key a first argument without ``=`` sets (``gdwm reproduce RUN_ID`` -> ``args.run=RUN_ID``)."""
 
 
 def build_data(cfg: DictConfig, _args: list[str]) -> int:
@@ -134,6 +136,21 @@ def _regress(cfg: DictConfig, args: list[str]) -> int:
     except (RegressError, DagError, RunError) as e:
         err_console.print(f"gdwm regress: {e}", markup=False)
         return 2
+
+
+def _reproduce(cfg: DictConfig, args: list[str]) -> int:
+    from gdwm.dag import DagError
+    from gdwm.plan import RunError
+    from gdwm.reproduce import ReproduceError, reproduce
+
+    try:
+        return reproduce(cfg, args)
+    except (ReproduceError, DagError) as e:
+        err_console.print(f"gdwm reproduce: {e}", markup=False)
+        return 2
+    except RunError as e:
+        err_console.print(f"gdwm reproduce: {e}", markup=False)
+        return 1
 
 
 def _compare(cfg: DictConfig, _args: list[str]) -> int:
@@ -238,6 +255,16 @@ COMMANDS: dict[str, dict[str, Command]] = {
             "args.baseline=ROW, args.out=DIR, args.formats=[...]; cells carry mean ± std over seeds or a bootstrap CI, "
             "marks need a significant difference: args.alpha=0.05, args.confidence=0.95, args.resamples=1000",
             defaults=["args=compare"],
+        ),
+    },
+    "reproduce": {
+        "": Command(
+            _reproduce,
+            "run a recorded trial, row, gdwm run or sweep again from scratch in a fresh workdir (RUN_ID [workdir=DIR] "
+            "[args.store=WORKDIR|URI]) and say per metric and cache entry whether it came out equal, with what differs "
+            "in the environment; exit 0 reproduced, 1 not, 2 bad input",
+            defaults=["args=reproduce"],
+            positional="args.run",
         ),
     },
     "ui": {
@@ -425,6 +452,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     spec = COMMANDS[command][sub]
+    if spec.positional and overrides and "=" not in overrides[0] and not overrides[0].startswith("-"):
+        overrides = [f"{spec.positional}={overrides[0]}", *overrides[1:]]
     if any(o in ("-h", "--help") for o in overrides):
         head = usage(command) if not sub else f"usage: gdwm {command} {sub} [overrides...]\n\n{spec.help}"
         print(f"{head}\n\n{_groups_help()}")

@@ -163,8 +163,20 @@ class StatusArgs:
     """Show this sweep alone, with its rows."""
     state: str | None = None
     """Keep launches in this state: running, done, failed or killed."""
-    limit: int = 20
+    limit: Annotated[int, Ge(1)] = 20
     """At most this many launches per list, newest first."""
+
+
+@dataclass
+class ReproduceArgs:
+    """``gdwm reproduce RUN_ID [workdir=DIR]`` (``RUN_ID`` sets ``args.run``; ``gdwm.reproduce``)."""
+
+    run: str | None = None
+    """The run to reproduce, by id or a unique prefix of at least 8 characters: a trial, a row (its seeds), a
+    ``gdwm run`` or a sweep (every trial)."""
+    store: str | None = None
+    """Where it is recorded: a workdir or an MLflow tracking URI. null = the configured store (``tracking.uri``) as
+    the command line sets it without its ``workdir=``, which names the fresh workdir."""
 
 
 class SceneErrorPolicy(StrEnum):
@@ -400,6 +412,7 @@ def _register_platform(cs: ConfigStore) -> None:
     cs.store(group="schema/args", name="zoo", node=ZooArgs)
     cs.store(group="schema/args", name="cache", node=CacheArgs)
     cs.store(group="schema/args", name="status", node=StatusArgs)
+    cs.store(group="schema/args", name="reproduce", node=ReproduceArgs)
 
 
 @cache

@@ -167,6 +167,9 @@ def load_benchmark(cfg: DictConfig) -> BenchmarkConfig:
 def regress(cfg: DictConfig, argv: list[str]) -> int:
     """Run the suite; 0 no regression, 1 regression (named), 2 error."""
     from gdwm.cache import CACHE_KEYS
+    from gdwm.environment.record import environment
+    from gdwm.environment.runs import baseline_flags as environment_flags
+    from gdwm.environment.runs import tag_run
     from gdwm.plan import PlanError
     from gdwm.runner import aggregate, evaluation_metrics, evaluation_samples, run_pipeline
     from gdwm.tracking import TrackingBackend
@@ -214,7 +217,9 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
             paired = _paired(backend, bench, base_run["run_id"], now_samples)
     rows = check(bench.metrics, base_run["metrics"] if base_run else None, now, paired)
     print_rows(bench, rows, base_run, [t.trial.seed for t in summary.trials])
+    env = environment()
     flags = baseline_flags(backend, base_run["run_id"], stages) if base_run else []
+    flags += environment_flags(backend, base_run["run_id"], env) if base_run else []
     print_provenance(stages, flags)
     run_id = backend.create_run(
         f"regress-{bench.name}",
@@ -223,6 +228,7 @@ def regress(cfg: DictConfig, argv: list[str]) -> int:
          "gdwm.seeds": ",".join(str(t.trial.seed) for t in summary.trials)},
     )  # fmt: skip
     try:
+        tag_run(backend, run_id, env)
         backend.log_metrics(run_id, now)
         backend.log_params(run_id, {"overrides": " ".join(bench.overrides + user), "targets": bench.targets})
         backend.log_text(run_id, markdown(rows), "regression.md")

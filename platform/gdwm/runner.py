@@ -46,6 +46,7 @@ from gdwm.cache import CACHE_KEYS, Cache
 from gdwm.config import SweepConfig
 from gdwm.dag import Pipeline
 from gdwm.determinism import worker_env
+from gdwm.environment.runs import log_launch
 from gdwm.errors import one_line, oom_line
 from gdwm.events import Event, launch_id
 from gdwm.executor import (
@@ -652,6 +653,7 @@ def launch(
         summary.parent_run_id = parent
         for t in trials:  # what `gdwm cache gc` keeps while the trial runs; its end replaces it with what it used
             tracking.log_text(t.run_id, json.dumps(planned_keys(t), indent=1), CACHE_KEYS)
+        log_launch(tracking, cfg, parent, trials)  # the environment these runs ran in (gdwm.environment)
         # on the driver's node, as the tracking actor: a worker node lost mid-run must not take the board along
         here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
         actor = ProgressActor.options(scheduling_strategy=here).remote()

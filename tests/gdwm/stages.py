@@ -205,3 +205,15 @@ def evaluate_gen(ctx: StageContext) -> dict:
     w = torch.load(ctx.upstream["diffusion"].path / "weights.pt", weights_only=True)["w"]
     (ctx.out_dir / "metrics.json").write_text(json.dumps({"psnr": float(w.mean())}))
     return {"psnr": float(w.mean())}
+
+
+@stage("lora", "1", config=["stage.toy_lora"], upstream=["tokenizer"], resources="train", seeded=True,
+       libraries=["toylib"])  # fmt: skip
+def lora_toylib(ctx: StageContext) -> None:
+    """The toy lora whose numbers depend on a library's version, as a real library upgrade's would: the rank is
+    scaled by the major version of ``toylib``, a fake distribution (a dist-info only) that
+    tests/gdwm/test_reproduce.py puts on PYTHONPATH; pipeline ``toy_lib``."""
+    from importlib.metadata import version
+
+    rank = float(ctx.cfg("stage.toy_lora")["rank"]) * int(version("toylib").split(".")[0])
+    _train_stage(ctx, ctx.cfg("stage.toy_lora")["steps"], rank + seed_noise(ctx.seed))

@@ -552,15 +552,25 @@ def test_dockerfile_installs_the_wheel_with_matching_ray_and_mlflow():
     import ray
     import torch
 
+    from gdwm.environment.lock import read_lock
+
     dockerfile = (K8S / "Dockerfile").read_text()
     version = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["version"]
     py = f"py{sys.version_info.major}{sys.version_info.minor}"
     assert re.search(rf"^ARG RAY_VERSION={re.escape(ray.__version__)}$", dockerfile, re.M)
     assert re.search(rf"^ARG PYTHON_TAG={py}$", dockerfile, re.M)
+    assert re.search(rf"^ARG LOCK_PLATFORM=linux-x86_64-{py}$", dockerfile, re.M)
     assert "FROM rayproject/ray:${RAY_VERSION}-${PYTHON_TAG}-gpu" in dockerfile
-    assert re.search(rf"^ARG TORCH_VERSION={re.escape(torch.__version__.split('+')[0])}$", dockerfile, re.M)
-    assert re.search(rf"^ARG MLFLOW_VERSION={re.escape(mlflow.__version__)}$", dockerfile, re.M)
-    assert "pip wheel --no-deps" in dockerfile and "download.pytorch.org/whl/" in dockerfile
+    assert "pip wheel --no-deps" in dockerfile
+    # every version from a lock, hash-checked: the Ray image's (CUDA torch) and the MLflow server's
+    assert "pip install --no-cache-dir --require-hashes -r /opt/gdwm/locks/cuda-${LOCK_PLATFORM}.txt" in dockerfile
+    assert "pip install --no-cache-dir --require-hashes -r /tmp/mlflow.lock" in dockerfile
+    assert "--no-deps /tmp/wheels/gdwm-*.whl" in dockerfile
+    cuda = read_lock(REPO / "locks" / f"cuda-linux-x86_64-{py}.txt")
+    server = read_lock(REPO / "locks" / f"mlflow-linux-x86_64-{py}.txt")
+    assert cuda.pins["ray"] == ray.__version__
+    assert cuda.pins["torch"] == torch.__version__.split("+")[0]
+    assert cuda.pins["mlflow"] == server.pins["mlflow"] == mlflow.__version__
     for kustomization in KUSTOMIZATIONS:
         objs = build(K8S / kustomization)
         images = {c["image"] for _, c in all_containers(objs)}

@@ -22,6 +22,7 @@ from gdwm.compare.samples import load_samples
 from gdwm.compare.stats import Settings
 from gdwm.compare.table import Table, build_table
 from gdwm.config import sqlite_path, ui_url
+from gdwm.environment.runs import environment_note
 from gdwm.errors import CommandError
 from gdwm.names import check_name
 from gdwm.owned import NotOurs, own_report_dir
@@ -91,6 +92,8 @@ def comparison(cfg: DictConfig, backend: TrackingBackend | None, warn: Callable[
             for problem in load_samples(backend, sel.rows, Path(tmp)):
                 warn(f"no per-sample statistics for {problem}")
     table = build_table(rows, layout, stats)
+    if backend is not None and (note := environment_note(backend, sel.rows)):  # rows of different environments
+        table.notes.append(note)
     for problem in published_averages(table, refs):
         warn(problem)
     if not any(table.value(i, c.metric) is not None for i in range(len(table.rows)) for c in table.columns):
