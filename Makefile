@@ -35,6 +35,9 @@ $(STAMP): pyproject.toml $(wildcard $(LOCK))
 	command -v chromium >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && { apt-get install -y -qq --no-install-recommends chromium || { apt-get update -qq && apt-get install -y -qq --no-install-recommends chromium; }; } || echo "chromium not installed: the browser test will skip"; }
 	@# Official BLEU/ROUGE-L/CIDEr tokenize with pycocoevalcap's PTBTokenizer (Java); never fails the setup.
 	command -v java >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && { apt-get install -y -qq --no-install-recommends default-jre-headless || { apt-get update -qq && apt-get install -y -qq --no-install-recommends default-jre-headless; }; } || echo "java not installed: text metrics use the fallback tokenizer, labelled approximate"; }
+	@# A team's store (MLflow on PostgreSQL) in the tests: they start PostgreSQL as the unprivileged user the package
+	@# creates; never fails the setup.
+	command -v initdb >/dev/null || ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && { apt-get install -y -qq --no-install-recommends postgresql || { apt-get update -qq && apt-get install -y -qq --no-install-recommends postgresql; }; } || echo "postgresql not installed: the team-store tests will skip"; }
 	echo "$(abspath $(LOCK))" > $(STAMP)
 
 setup: $(STAMP) ## create .venv and install gdwm with dev tools, exactly as locks/ says (pip --require-hashes)

@@ -37,3 +37,20 @@ def s5(ctx: StageContext) -> None:
 @stage("s6", "1", config=["stage.s6"], upstream=["s5"])
 def s6(ctx: StageContext) -> None:
     _touch(ctx)
+
+
+# ---- a sweep's shape (bench_scale): one shared stage, then a fit and an evaluation per trial -----------------------
+@stage("prep", "1", config=["stage.prep"])
+def prep(ctx: StageContext) -> None:
+    _touch(ctx)
+
+
+@stage("fit", "1", config=["stage.fit"], upstream=["prep"])
+def fit(ctx: StageContext) -> None:
+    (ctx.out_dir / "x.txt").write_text(str(ctx.cfg("stage.fit")["x"]))
+
+
+@stage("score", "1", config=["stage.score"], upstream=["fit"], evaluation=True)
+def score(ctx: StageContext) -> dict:
+    x = float((ctx.upstream["fit"].path / "x.txt").read_text())
+    return {"nuinteract/plan_acc": x, "nuinteract/rdp_bleu": x / 2}
