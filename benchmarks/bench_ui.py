@@ -88,15 +88,17 @@ def _stop(proc: subprocess.Popen) -> None:
             os.killpg(proc.pid, signal.SIGKILL)
 
 
-def gdwm_ui(workdir: Path, wait_table: bool) -> dict:
-    """Start ``gdwm ui`` on the store; seconds to its URL, RSS (steady after the table, peak while computing)."""
+def gdwm_ui(workdir: Path, wait_table: bool, args: tuple[str, ...] = (), env: dict | None = None) -> dict:
+    """Start ``gdwm ui`` on the store (``args``: more overrides, e.g. ``tracking=server``; ``env``: its environment);
+    seconds to its URL, RSS (steady after the table, peak while computing)."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "gdwm", "ui", f"workdir={workdir}", "--port", "0"],
+        [sys.executable, "-m", "gdwm", "ui", f"workdir={workdir}", *args, "--port", "0"],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
         start_new_session=True,
+        env=env,
     )
     url, lines = None, []
     try:

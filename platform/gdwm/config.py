@@ -14,7 +14,7 @@ import dataclasses
 import os
 import re
 import urllib.parse
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from functools import cache
@@ -486,13 +486,26 @@ def group_options(group: str) -> list[str]:
 
 def load_config(overrides: list[str] | tuple[str, ...] = (), config_name: str = "config") -> DictConfig:
     """Compose and validate; every interpolation is resolved so missing values fail here, not mid-run."""
+    return validated(lambda: compose_raw(overrides, config_name), overrides)
+
+
+def compose_raw(overrides: list[str] | tuple[str, ...], config_name: str = "config") -> DictConfig:
+    """Hydra's composition of ``conf/`` (and ``GDWM_CONF_PATH``'s trees) with ``overrides``: unresolved, unchecked
+    (``validated`` does both; ``load_config`` is the two)."""
     _register_all()
     extra = [p for p in os.environ.get("GDWM_CONF_PATH", "").split(os.pathsep) if p]
     if extra:  # user / plugin config trees searched after conf/
         overrides = [f"hydra.searchpath=[{','.join('file://' + str(Path(p).resolve()) for p in extra)}]", *overrides]
+    with initialize_config_dir(config_dir=str(conf_dir()), version_base="1.3"):
+        return compose(config_name=config_name, overrides=list(overrides))
+
+
+def validated(make: Callable[[], DictConfig], overrides: list[str] | tuple[str, ...]) -> DictConfig:
+    """``make()``'s config resolved and checked (every value resolvable, every numeric knob in range, values from
+    the environment recorded as their interpolation); any error of ``make`` or of the checks is a ``ConfigError``
+    naming the key (``overrides``: what the config was made from, for the message)."""
     try:
-        with initialize_config_dir(config_dir=str(conf_dir()), version_base="1.3"):
-            cfg = compose(config_name=config_name, overrides=list(overrides))
+        cfg = make()
         secret = env_keys(OmegaConf.to_container(cfg, resolve=False)) if "from_env" in cfg else {}
         _check_resolvable(cfg)
         OmegaConf.resolve(cfg)

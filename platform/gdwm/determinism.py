@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import os
 import random
+import sys
+from collections.abc import Iterable
 
 CUBLAS_WORKSPACE = ":4096:8"
 """cuBLAS needs a fixed workspace for deterministic GEMMs; it reads the variable when CUDA initialises."""
@@ -35,14 +37,27 @@ def worker_env(deterministic: bool | None) -> dict[str, str]:
     return {} if deterministic is False else {"CUBLAS_WORKSPACE_CONFIG": CUBLAS_WORKSPACE}
 
 
-def stage_start(seed: int, num_cpus: float, deterministic: bool | None) -> bool:
+TORCH_LIBRARIES = frozenset({"torch", "transformers", "peft", "diffusers", "accelerate", "safetensors", "gsplat"})
+"""Distributions whose use means torch runs in the stage (``gdwm.fingerprint``'s libraries of its code)."""
+
+
+def uses_torch(libraries: Iterable[str] | None) -> bool:
+    """Whether a stage whose code fingerprint lists ``libraries`` (None: unknown) needs torch seeded: it imports torch
+    or a library built on it, or this process has torch already (an earlier task's state would carry over)."""
+    return libraries is None or bool(TORCH_LIBRARIES & set(libraries)) or "torch" in sys.modules
+
+
+def stage_start(seed: int, num_cpus: float, deterministic: bool | None, torch_used: bool = True) -> bool:
     """Seed ``random``, numpy and torch from ``seed``; when deterministic (see ``resolve``), one fixed torch thread
     count (the stage's CPU allotment, whatever Ray or an earlier task set) and deterministic CUDA kernels. Returns
-    whether determinism is on."""
+    whether determinism is on. ``torch_used=False`` (``uses_torch``: the stage's code imports no torch, and no task
+    of this process did) leaves torch unimported: seconds of a new worker's start that a light stage doesn't need."""
     random.seed(seed)
     import numpy as np
 
     np.random.seed(seed % 2**32)
+    if not torch_used and "torch" not in sys.modules:
+        return deterministic is not False
     import torch
 
     torch.manual_seed(seed)

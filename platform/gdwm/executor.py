@@ -26,12 +26,12 @@ from typing import Any
 import ray
 
 from gdwm.cache import Cache, Manifest, cache_key
-from gdwm.determinism import stage_start
+from gdwm.determinism import stage_start, uses_torch
 from gdwm.errors import oom_line
 from gdwm.fromenv import masked, restore
 from gdwm.keylock import KeyLock
 from gdwm.stage import StageContext, StageDef, UpstreamOutput
-from gdwm.tracking import Sink, Tracker, TrackingClient
+from gdwm.tracking import NewRun, RunWrite, Sink, Tracker, TrackingClient
 from gdwm.tracking.params import flatten_params, relative_paths
 from gdwm.zoo.registry import lineage_tags
 
@@ -257,33 +257,21 @@ def _progress(env: RunEnv, scene: str | None, state: str, message: str | None = 
         env.progress.state(state, scene, message)
 
 
-def _open_stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping) -> str:
-    run_id = _stage_run(env, sd, key, subset)
-    if (fp := env.code.get(sd.name)) is not None:  # the code behind the key: its digest, files and libraries
-        env.tracking.set_tags(run_id, {TAG_CODE: fp["digest"]})
-        env.tracking.log_text(run_id, json.dumps(fp, indent=1, sort_keys=True), "code.json")
-    return run_id
-
-
-def _stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping) -> str:
-    """The MLflow run for this key: an unfinished earlier attempt's is reopened (a killed attempt leaves no
-    duplicate); after a finished one (a recompute: a corrupt or invalidated entry, a re-run scene, a forced
-    recompute) a new run is created, tagged ``gdwm.recomputes`` with the original, whose history stays as it was."""
-    where = f"tags.`{TAG_KEY}` = '{key}' and tags.`{TAG_STAGE}` = '{sd.name}'"
-    found = env.tracking.search_runs(where, order_by=["attributes.start_time DESC"])
-    unfinished = [r for r in found if r["status"] != "FINISHED"]
-    if unfinished:
-        run_id = unfinished[0]["run_id"]
-        env.tracking.reopen_run(run_id)
-        env.tracking.set_tags(run_id, {"gdwm.resumed": "true"})
-        return run_id
-    tags = {TAG_STAGE: sd.name, TAG_KEY: key, TAG_VERSION: sd.version, "gdwm.kind": "stage", **env.run_tags}
-    if found:
-        tags[TAG_RECOMPUTES] = found[0]["run_id"]
-    run_id = env.tracking.create_run(f"{sd.name}-{key[:8]}", tags, env.parent_run_id)
-    # paths relative to the workdir (the checkpoint root's parent): params describe the stage, not the machine
-    env.tracking.log_params(run_id, relative_paths(flatten_params(dict(subset)), Path(env.checkpoint_root).parent))
-    return run_id
+def _open_stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping, tags: Mapping[str, str] | None = None) -> str:
+    """The MLflow run for this key, in one call to the store (``TrackingBackend.keyed_run``): an unfinished earlier
+    attempt's is reopened (a killed attempt leaves no duplicate); after a finished one (a recompute: a corrupt or
+    invalidated entry, a re-run scene, a forced recompute) a new run is created, tagged ``gdwm.recomputes`` with the
+    original, whose history stays as it was. A new run carries the stage's params (paths relative to the workdir,
+    the checkpoint root's parent: params describe the stage, not the machine) and the code behind its key (tag
+    ``gdwm.code``, artifact ``code.json``: digest, files and libraries)."""
+    fp = env.code.get(sd.name)
+    extra = dict(tags or {}) | ({TAG_CODE: fp["digest"]} if fp is not None else {})
+    new_tags = {TAG_STAGE: sd.name, TAG_KEY: key, TAG_VERSION: sd.version, "gdwm.kind": "stage", **env.run_tags}
+    params = relative_paths(flatten_params(dict(subset)), Path(env.checkpoint_root).parent)
+    texts = {"code.json": json.dumps(fp, indent=1, sort_keys=True)} if fp is not None else {}
+    new = NewRun(f"{sd.name}-{key[:8]}", new_tags | extra, env.parent_run_id, params, texts)
+    resumed = {"gdwm.resumed": "true"} | extra
+    return env.tracking.keyed_run({TAG_KEY: key, TAG_STAGE: sd.name}, new, resumed, TAG_RECOMPUTES)
 
 
 def _context(sd: StageDef, key: str, subset, env: RunEnv, results, out_dir: Path, tracker, scene=None, state=None):
@@ -316,7 +304,8 @@ def _execute(sd, key, base, subset, env, results, tracker, scene=None, state=Non
         out.mkdir()
         ctx = _context(sd, key, subset, env, results, out, tracker, scene, state)
         # whatever earlier tasks left in this worker's generators and thread count must not reach the output
-        stage_start(ctx.seed or 0, ctx.resources.get("num_cpus", 1), env.deterministic)
+        libraries = (env.code.get(sd.name) or {}).get("libraries")
+        stage_start(ctx.seed or 0, ctx.resources.get("num_cpus", 1), env.deterministic, uses_torch(libraries))
         extra = sd.fn(ctx) or {}
         if not isinstance(extra, dict):
             raise TypeError(f"stage '{sd.name}' returned {type(extra).__name__}; return None or a JSON-able dict")
@@ -403,8 +392,7 @@ def _key_lock(cache: Cache, env: RunEnv, stage: str, scene: str | None, key: str
 
 
 def _end_failed(env: RunEnv, run_id: str, text: str) -> None:
-    env.tracking.log_text(run_id, text, "error.txt")
-    env.tracking.end_run(run_id, "FAILED")
+    env.tracking.write([RunWrite(run_id, texts={"error.txt": text}, end="FAILED")])
 
 
 class SceneWorker:
@@ -474,8 +462,7 @@ def run_scene_stage(sd: StageDef, subset: dict, env: RunEnv, *results: StageResu
 
 def _compute_scenes(sd, subset, env: RunEnv, results, scenes, misses, keys, bases, done, agg) -> StageResult:
     upstream_failed = {s for r in results for s in r.failed}
-    run_id = _open_stage_run(env, sd, agg, subset)
-    env.tracking.set_tags(run_id, {TAG_SCENES: ",".join(misses)})
+    run_id = _open_stage_run(env, sd, agg, subset, {TAG_SCENES: ",".join(misses)})
     _progress(env, None, "running")
     try:
         errors = _run_pool(sd, subset, env, run_id, results, misses, keys, bases, done)
@@ -487,12 +474,11 @@ def _compute_scenes(sd, subset, env: RunEnv, results, scenes, misses, keys, base
     if errors and env.on_scene_error == "fail":
         _end_failed(env, run_id, "\n\n".join(f"== {s} ==\n{tb}" for s, tb in errors.items()))
         raise StageFailed(sd.name, errors)
-    if errors:
-        env.tracking.log_text(run_id, "\n\n".join(f"== {s} ==\n{tb}" for s, tb in errors.items()), "skipped.txt")
+    skipped = {"skipped.txt": "\n\n".join(f"== {s} ==\n{tb}" for s, tb in errors.items())} if errors else {}
     done = {s: done[s] for s in scenes if s in done}  # the dataset's scene order, not the order scenes finished in
     agg = aggregate_key(sd, subset, {s: k for s, (k, _) in done.items()}, env)
     agg_base = aggregate_key(sd, subset, {s: bases[s] for s in done}, env)
-    env.tracking.end_run(run_id, "FINISHED")
+    env.tracking.write([RunWrite(run_id, texts=skipped, end="FINISHED")])
     return StageResult(sd.name, agg, False, run_id, scenes=done, failed={**errors}, base=agg_base,
                        bases={s: bases[s] for s in done})  # fmt: skip
 

@@ -18,6 +18,7 @@ from gdwm.board import Lines, board
 from gdwm.events import EVENTS_FILE, SNAPSHOT_ARTIFACT, TRACEBACKS_DIR, Event, EventLog
 from gdwm.progress import Execution, LaunchProgress
 from gdwm.term import NORMAL, QUIET, console
+from gdwm.tracking.writes import RunWrite
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 KEEPALIVE_S = 60.0
@@ -133,9 +134,9 @@ class Monitor:
         self._snapshot_at, self._changed = now, False
         snap = self.lp.snapshot(self.events_path)
         c = snap["counts"]
-        self.tracking.set_tags(self.run_id, {
+        tags = {
             "gdwm.state": snap["state"], "gdwm.progress": snap["summary"], "gdwm.events": self.events_path,
             "gdwm.trials_done": str(c["trials_done"]), "gdwm.trials_failed": str(c["trials_failed"]),
             "gdwm.trials_total": str(c["trials"]),
-        })  # fmt: skip
-        self.tracking.log_text(self.run_id, json.dumps(snap, indent=1), SNAPSHOT_ARTIFACT)
+        }  # fmt: skip
+        self.tracking.write([RunWrite(self.run_id, tags=tags, texts={SNAPSHOT_ARTIFACT: json.dumps(snap, indent=1)})])

@@ -20,7 +20,8 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from gdwm.cache import Cache, Manifest
-from gdwm.config import ConfigError, SweepConfig, SweepRow, load_config
+from gdwm.composer import Composer
+from gdwm.config import ConfigError, SweepConfig, SweepRow
 from gdwm.dag import DagError, Pipeline, load_pipeline
 from gdwm.executor import (
     ALL,
@@ -209,6 +210,7 @@ def compose(
     Without ``overrides`` (a caller holding a composed config only), ``cfg`` is every trial's config, so its seed
     must be the only seed. Errors name ``where`` (and the row, with ``name_rows``)."""
     seen: dict[str, _Entries] = {}  # a cache's entries are read once per launch, whatever the number of trials
+    composer = Composer(overrides) if overrides is not None else None  # Hydra composes once per set of group choices
     refused: dict[str, list[str]] = {}  # row -> what its stages need that the dataset lacks
     lacks = ""
     for t in trials:
@@ -219,7 +221,7 @@ def compose(
             t.cfg = cfg
         else:
             try:
-                t.cfg = load_config([*overrides, *t.row.overrides, f"seed={t.seed}"])
+                t.cfg = composer.load([*t.row.overrides, f"seed={t.seed}"])
             except ConfigError as e:
                 raise PlanError(f"{here}: {e}") from e
         try:

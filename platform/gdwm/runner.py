@@ -46,7 +46,7 @@ from gdwm.cache import CACHE_KEYS, Cache
 from gdwm.config import SweepConfig
 from gdwm.dag import Pipeline
 from gdwm.determinism import worker_env
-from gdwm.environment.runs import log_launch
+from gdwm.environment.runs import DIGEST_TAG, log_launch
 from gdwm.errors import one_line, oom_line
 from gdwm.events import Event, launch_id
 from gdwm.executor import (
@@ -77,7 +77,17 @@ from gdwm.preflight import check_ray_temp
 from gdwm.progress import Execution, LaunchProgress, ProgressActor, Reporter
 from gdwm.simcluster import SimCluster, SimConfig
 from gdwm.term import NORMAL, QUIET, console, err_console
-from gdwm.tracking import AliveExcept, RunGuard, Sink, TrackingClient, open_tracking, process_owner
+from gdwm.tracking import (
+    AliveExcept,
+    NewRun,
+    RunGuard,
+    RunWrite,
+    Sink,
+    TrackingClient,
+    WriteQueue,
+    open_tracking,
+    process_owner,
+)
 from gdwm.tracking.params import flatten_params, relative_paths
 from gdwm.zoo.registry import metric_tags
 
@@ -168,8 +178,12 @@ def init_ray(cfg: DictConfig) -> SimCluster | bool:
             # address="local": a new Ray of its own, never a cluster some other process started on this machine.
             # A worker Ray's OOM killer ended is not retried (Ray's default retries it 15 times, minutes of the same
             # end): the stage fails at once naming itself (and its scene).
+            # An idle worker lives a minute (Ray's default: one second once more than num_cpus exist): a task that
+            # blocks on the tracking actor lets Ray start another worker, and a sweep's next stage reuses that one
+            # (gdwm, MLflow and the stage's libraries imported) instead of starting a process for it.
             ray.init(address="local", num_cpus=c.num_cpus, num_gpus=c.num_gpus, runtime_env={"env_vars": env_vars},
-                     _system_config={"task_oom_retries": 0}, **kwargs)  # fmt: skip
+                     _system_config={"task_oom_retries": 0, "idle_worker_killing_time_threshold_ms": IDLE_WORKER_MS},
+                     **kwargs)  # fmt: skip
     if threading.current_thread() is threading.main_thread():
         # ray.init's own SIGTERM handler exits 1; exit 143 as a terminated process should (finally shuts Ray).
         signal.signal(signal.SIGTERM, _sigterm)
@@ -192,6 +206,9 @@ def check_address(address: str, timeout_s: float) -> None:
             "is the head up and the address right?"
         ) from None
 
+
+IDLE_WORKER_MS = 60_000
+"""How long a local Ray keeps an idle worker process beyond its CPU count (see ``init_ray``)."""
 
 AUTH_MODE_ENV = "RAY_AUTH_MODE"
 """Ray sets it to ``token`` in the driver when it turns token authentication on (by default for a local Ray)."""
@@ -227,9 +244,15 @@ def driver_session(cfg: DictConfig) -> Iterator[TrackingClient]:
     """Ray (started here unless already up) and the tracking client of one driver invocation; runs that dead drivers
     left RUNNING are reconciled first. Whatever escapes (Ctrl-C, SIGTERM, an error) ends the runs this driver owns
     KILLED now, not at the next reconcile."""
-    started = init_ray(cfg)
+    early = None if cfg.tracking.single_writer else open_tracking(cfg.tracking)  # a store that is down: before Ray
     try:
-        sink, close = open_tracking(cfg.tracking)
+        started = init_ray(cfg)
+    except BaseException:
+        if early is not None:
+            early[1]()
+        raise
+    try:
+        sink, close = early or open_tracking(cfg.tracking)
     except BaseException:
         _stop_ray(started)
         raise
@@ -271,30 +294,75 @@ class Layout:
     launch_id: str
     """Finds this launch's row and trial runs again on a re-run: ``sweep:<name>`` or ``run:<run key>``."""
     pipeline: str
+    recorded: set[str] = field(default_factory=set, init=False)
+    """Row and trial runs an earlier launch of this one recorded an environment on (``gdwm.environment``)."""
 
     @property
     def stage_tags(self) -> dict[str, str]:
         return {"gdwm.sweep": self.sweep.name} if self.sweep else {}
 
     def open(self, tracking: TrackingClient, cfg: DictConfig, rows: list[Row], trials: list[Trial]) -> str:
-        """The launch's run (found again or created), and every row's and trial's run under it."""
+        """The launch's run (found again or created), and every row's and trial's run under it: one search finds the
+        runs an earlier launch of it made (reopened, re-tagged), one call creates the rest per level."""
         parent = self._parent(tracking, cfg)
         if self.sweep is None:  # the run is the row (and, with one seed, the trial)
             seeds = rows[0].seeds
             tracking.set_tags(parent, {"gdwm.seeds": ",".join(map(str, seeds))} | (
                 {"gdwm.seed": str(seeds[0])} if len(seeds) == 1 else {}))  # fmt: skip
+        found = self._earlier(tracking)
+        reopened: list[RunWrite] = []
+        new_rows: list[tuple[Row, NewRun]] = []
         for row in rows:
-            mine = [t for t in trials if t.row is row]
-            row.run_id = parent if self.sweep is None else self._row_run(tracking, parent, row, mine[0].cfg)
-            for t in mine:
-                t.run_id = row.run_id if len(mine) == 1 and self.sweep is None else self._trial_run(tracking, row, t)
+            if self.sweep is None:
+                row.run_id = parent
+                continue
+            tags = {"gdwm.kind": "row", ROW_KEY: row.key, LAUNCH: self.launch_id, **self._row_tags(row)}
+            if (run_id := found.get((ROW_KEY, row.key))) is not None:  # an edited row keeps its run; its index may move
+                row.run_id = run_id
+                reopened.append(RunWrite(run_id, tags=tags, reopen=True))
+                continue
+            cfg0 = next(t for t in trials if t.row is row).cfg
+            params = config_params(cfg0) | factor_params(row)
+            new_rows.append((row, NewRun(f"{self.sweep.name}/{row.label}", tags, parent, params)))
+        for (row, _), run_id in zip(new_rows, tracking.create_runs([n for _, n in new_rows]), strict=True):
+            row.run_id = run_id
+        new_trials: list[tuple[Trial, NewRun]] = []
+        for t in trials:
+            if self.sweep is None and len(t.row.seeds) == 1:
+                t.run_id = t.row.run_id
+                continue
+            tags = {"gdwm.kind": "trial", TRIAL_KEY: t.key, LAUNCH: self.launch_id, "gdwm.seed": str(t.seed)}
+            tags |= self._row_tags(t.row) if self.sweep else {}
+            if (run_id := found.get((TRIAL_KEY, t.key))) is not None:
+                t.run_id = run_id
+                reopened.append(RunWrite(run_id, tags=tags, reopen=True))
+                continue
+            name = f"{self.sweep.name}/{t.name}" if self.sweep else f"seed-{t.seed}"
+            params = config_params(t.cfg) | (factor_params(t.row) if self.sweep else {})
+            new_trials.append((t, NewRun(name, tags, t.row.run_id, params)))
+        for (t, _), run_id in zip(new_trials, tracking.create_runs([n for _, n in new_trials]), strict=True):
+            t.run_id = run_id
+        tracking.write(reopened)
         return parent
+
+    def _earlier(self, tracking: TrackingClient) -> dict[tuple[str, str], str]:
+        """``(ROW_KEY or TRIAL_KEY, key) -> run id`` of the runs earlier launches of this one made (the newest)."""
+        out: dict[tuple[str, str], str] = {}
+        for r in tracking.search_runs(f"tags.`{LAUNCH}` = '{self.launch_id}'", 10**9, ["attributes.start_time DESC"]):
+            for tag in (ROW_KEY, TRIAL_KEY):
+                if tag in r["tags"]:
+                    out.setdefault((tag, r["tags"][tag]), r["run_id"])
+            if r["tags"].get(DIGEST_TAG):
+                self.recorded.add(r["run_id"])
+        return out
 
     def _find(self, tracking: TrackingClient, tags: dict[str, str]) -> str | None:
         found = tracking.search_runs(" and ".join(f"tags.`{k}` = '{v}'" for k, v in tags.items()))
         if not found:
             return None
         tracking.reopen_run(found[0]["run_id"])
+        if found[0]["tags"].get(DIGEST_TAG):
+            self.recorded.add(found[0]["run_id"])
         return found[0]["run_id"]
 
     def _parent(self, tracking: TrackingClient, cfg: DictConfig) -> str:
@@ -317,28 +385,6 @@ class Layout:
         tags = {"gdwm.row": row.label, "gdwm.trial_index": str(row.index), "gdwm.seeds": ",".join(map(str, row.seeds))}
         tags |= {f"gdwm.factor.{k}": v for k, v in row.factors.items()}
         return tags | ({"gdwm.sweep": self.sweep.name, "gdwm.overrides": " ".join(row.overrides)} if self.sweep else {})
-
-    def _row_run(self, tracking: TrackingClient, parent: str, row: Row, cfg: DictConfig) -> str:
-        tags = {"gdwm.kind": "row", ROW_KEY: row.key, LAUNCH: self.launch_id, **self._row_tags(row)}
-        run_id = self._find(tracking, {ROW_KEY: row.key, LAUNCH: self.launch_id})
-        if run_id is not None:
-            tracking.set_tags(run_id, tags)  # an edited row keeps its run; its index may move
-            return run_id
-        run_id = tracking.create_run(f"{self.sweep.name}/{row.label}", tags, parent)
-        tracking.log_params(run_id, config_params(cfg) | factor_params(row))
-        return run_id
-
-    def _trial_run(self, tracking: TrackingClient, row: Row, t: Trial) -> str:
-        tags = {"gdwm.kind": "trial", TRIAL_KEY: t.key, LAUNCH: self.launch_id, "gdwm.seed": str(t.seed)}
-        tags |= self._row_tags(row) if self.sweep else {}
-        run_id = self._find(tracking, {TRIAL_KEY: t.key, LAUNCH: self.launch_id})
-        if run_id is not None:
-            tracking.set_tags(run_id, tags)
-            return run_id
-        name = f"{self.sweep.name}/{t.name}" if self.sweep else f"seed-{t.seed}"
-        run_id = tracking.create_run(name, tags, row.run_id)
-        tracking.log_params(run_id, config_params(t.cfg) | (factor_params(row) if self.sweep else {}))
-        return run_id
 
 
 FACTOR_PARAM = "factor."
@@ -397,29 +443,20 @@ def evaluation_samples(pipe: Pipeline, results: dict[str, StageResult]) -> dict[
     return out
 
 
-def report_evaluation(
-    tracking: TrackingClient, run_id: str, pipe: Pipeline, results: dict[str, StageResult]
-) -> dict[str, float]:
+def evaluation_write(run_id: str, pipe: Pipeline, results: dict[str, StageResult]) -> RunWrite:
     """The evaluation stages' metrics, per-sample tables (``<stage>/*.parquet``) and how to rescore them (tags
     ``gdwm.samples.<stage>``, ``gdwm.scorer.<stage>``, ``gdwm.strata.<stage>``: what ``gdwm compare`` resamples)
-    onto the trial's run."""
+    as one write to the trial's run; counts (``count/*``) are tags ``gdwm.count/<name>``, not metrics."""
     metrics = evaluation_metrics(pipe, results)
-    values = {k: v for k, v in metrics.items() if not k.startswith(COUNT)}
-    if values:
-        tracking.log_metrics(run_id, values)
-    counts = {f"gdwm.{k}": f"{v:g}" for k, v in metrics.items() if k.startswith(COUNT)}
-    if counts:  # how many samples were answered or skipped: a fact about the run, not a score to sort or plot
-        tracking.set_tags(run_id, counts)
-    for name, r in results.items():
-        if pipe.stages[name].evaluation and r.path:
-            for table in sorted(Path(r.path).glob("*.parquet")):
-                tracking.log_artifact(run_id, str(table), name)
-    tags = {
-        k: v for n, s in evaluation_samples(pipe, results).items() for k, v in s.tags(n, f"{n}/{s.path.name}").items()
-    }
-    if tags:
-        tracking.set_tags(run_id, tags)
-    return metrics
+    w = RunWrite(run_id, metrics={k: v for k, v in metrics.items() if not k.startswith(COUNT)})
+    # how many samples were answered or skipped: a fact about the run, not a score to sort or plot
+    tags = {f"gdwm.{k}": f"{v:g}" for k, v in metrics.items() if k.startswith(COUNT)}
+    for n, samples in evaluation_samples(pipe, results).items():
+        tags |= samples.tags(n, f"{n}/{samples.path.name}")
+    w.tags = tags
+    w.files = [(str(table), name) for name, r in results.items() if pipe.stages[name].evaluation and r.path
+               for table in sorted(Path(r.path).glob("*.parquet"))]  # fmt: skip
+    return w
 
 
 COUNT = "count/"
@@ -651,9 +688,10 @@ def launch(
     with _launch_lock(cfg, layout), driver_session(cfg) as tracking:
         parent = layout.open(tracking, cfg, rows, trials)
         summary.parent_run_id = parent
-        for t in trials:  # what `gdwm cache gc` keeps while the trial runs; its end replaces it with what it used
-            tracking.log_text(t.run_id, json.dumps(planned_keys(t), indent=1), CACHE_KEYS)
-        log_launch(tracking, cfg, parent, trials)  # the environment these runs ran in (gdwm.environment)
+        # what `gdwm cache gc` keeps while each trial runs (its end replaces it with what it used), and the environment
+        # these runs ran in (gdwm.environment): one write
+        planned = [RunWrite(t.run_id, texts={CACHE_KEYS: json.dumps(planned_keys(t), indent=1)}) for t in trials]
+        log_launch(tracking, cfg, parent, trials, layout.recorded, planned)
         # on the driver's node, as the tracking actor: a worker node lost mid-run must not take the board along
         here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
         actor = ProgressActor.options(scheduling_strategy=here).remote()
@@ -665,11 +703,17 @@ def launch(
                           snapshot_s=float(cfg.run.snapshot_s))  # fmt: skip
         summary.monitor = monitor
 
+        # a trial's and row's outcomes are written while the launch goes on; the launch waits for them at its end
+        writes = WriteQueue(tracking.sink)
+        row_trials: dict[int, list[Trial]] = {}
+        for t in trials:
+            row_trials.setdefault(id(t.row), []).append(t)
+
         def on_trial(t: Trial, outcomes: dict[str, Outcome]) -> Event:
-            results[id(t)] = res = _finish_trial(tracking, layout, t, outcomes)
-            row_trials = [x for x in trials if x.row is t.row]
-            if all(id(x) in results for x in row_trials):
-                _finish_row(tracking, layout, t.row, [results[id(x)] for x in row_trials])
+            results[id(t)] = res = _finish_trial(writes, layout, t, outcomes)
+            mine = row_trials[id(t.row)]
+            if all(id(x) in results for x in mine):
+                _finish_row(writes, layout, t.row, [results[id(x)] for x in mine])
             if res.ok:
                 return Event("trial", "done", trials=[_label(t)], message=f"finished ({len(res.metrics)} metrics)")
             stage = next(iter(res.failed), res.blocked[0] if res.blocked else "")
@@ -685,6 +729,7 @@ def launch(
                 tracking.set_tags(parent, {"gdwm.events": monitor.events_path})
                 summary.executions = execute(trials, tracking.sink, parent, on_trial, monitor,
                                              stage_tags=layout.stage_tags)  # fmt: skip
+                writes.flush()
                 summary.trials = [results[id(t)] for t in trials]
                 ok = summary.ok
                 monitor.emit(Event("launch", "done" if ok else "failed", duration_s=lp.elapsed(),
@@ -722,8 +767,9 @@ def _launch_lock(cfg: DictConfig, layout: Layout) -> KeyLock:
     return KeyLock(Cache(cfg.cache.uri), "launch", key, on_wait=waiting)
 
 
-def _finish_trial(tracking: TrackingClient, layout: Layout, t: Trial, outcomes: dict[str, Outcome]) -> TrialResult:
-    """Record one trial's outcome on its run: a failure (stage, error), or its evaluation and stage links."""
+def _finish_trial(writes: WriteQueue, layout: Layout, t: Trial, outcomes: dict[str, Outcome]) -> TrialResult:
+    """Record one trial's outcome on its run, in one write: a failure (stage, error), or its evaluation and stage
+    links; the zoo versions its stages registered get its lineage."""
     res = TrialResult(t)
     for n, r in outcomes.items():
         if isinstance(r, StageResult):
@@ -735,36 +781,36 @@ def _finish_trial(tracking: TrackingClient, layout: Layout, t: Trial, outcomes: 
     own_run = t.run_id != t.row.run_id  # else it is the launch's run, which its guard ends
     if res.failed:
         stage, msg = next(iter(res.failed.items()))
-        tracking.set_tags(t.run_id, {"gdwm.failed_stage": stage, "gdwm.error": msg})
-        tracking.log_text(t.run_id, msg, "error.txt")
-        if own_run:
-            tracking.end_run(t.run_id, "FAILED")
+        writes.put(RunWrite(t.run_id, tags={"gdwm.failed_stage": stage, "gdwm.error": msg}, texts={"error.txt": msg},
+                            end="FAILED" if own_run else None))  # fmt: skip
         return res
     links = {f"gdwm.stage_run.{n}": r.run_id for n, r in res.results.items() if r.run_id}
-    tracking.set_tags(t.run_id, links | {f"gdwm.stage_key.{n}": r.key for n, r in res.results.items()})
-    tracking.log_text(t.run_id, json.dumps(entry_keys(res.results), indent=1), CACHE_KEYS)
-    res.metrics = report_evaluation(tracking, t.run_id, t.pipe, res.results)
+    w = evaluation_write(t.run_id, t.pipe, res.results)
+    w.tags = links | {f"gdwm.stage_key.{n}": r.key for n, r in res.results.items()} | dict(w.tags)
+    w.texts = {CACHE_KEYS: json.dumps(entry_keys(res.results), indent=1)}
+    res.metrics = evaluation_metrics(t.pipe, res.results)
     if layout.sweep is not None:
         # the zoo versions this trial's stages registered carry its sweep, trial and key metrics
         lineage = {"gdwm.sweep": layout.sweep.name, "gdwm.trial": t.run_id, "gdwm.row": t.label}
-        lineage |= metric_tags({k: v for k, v in res.metrics.items() if not k.startswith("count/")})
-        tracking.tag_versions([r.key for r in res.results.values()], lineage)
-    if own_run and not res.blocked:
-        tracking.end_run(t.run_id, "FINISHED")
+        w.version_tags = lineage | metric_tags({k: v for k, v in res.metrics.items() if not k.startswith("count/")})
+        w.versions_of = sorted({r.run_id for r in res.results.values() if r.run_id})
+    w.end = "FINISHED" if own_run and not res.blocked else None
+    writes.put(w)
     return res
 
 
-def _finish_row(tracking: TrackingClient, layout: Layout, row: Row, results: list[TrialResult]) -> None:
+def _finish_row(writes: WriteQueue, layout: Layout, row: Row, results: list[TrialResult]) -> None:
     """A row's aggregate over its finished seeds, on the row's run (when it is not its only trial's run)."""
     if all(r.trial.run_id == row.run_id for r in results):
         return
     agg = aggregate([r.metrics for r in results if r.ok])
+    w = RunWrite(row.run_id)
     if agg:
-        tracking.log_metrics(row.run_id, row_metrics(agg))
-        tracking.set_tags(row.run_id, {f"gdwm.n.{m.removeprefix('n/')}": f"{v:g}" for m, v in agg.items()
-                                       if m.startswith("n/")})  # fmt: skip
+        w.metrics = row_metrics(agg)
+        w.tags = {f"gdwm.n.{m.removeprefix('n/')}": f"{v:g}" for m, v in agg.items() if m.startswith("n/")}
     if layout.sweep is not None:
-        tracking.end_run(row.run_id, "FINISHED" if any(r.ok for r in results) else "FAILED")
+        w.end = "FINISHED" if any(r.ok for r in results) else "FAILED"
+    writes.put(w)
 
 
 # ---- gdwm run ----------------------------------------------------------------------------------------------------

@@ -1,5 +1,6 @@
-"""Real servers on loopback for the cluster-path tests: a moto S3 server (the cache) and an MLflow tracking server
-with basic-auth (tracking). Each test module starts its own from a fixture; these are the shared parts."""
+"""Real servers on loopback for the cluster-path tests: a moto S3 server (the cache), an MLflow tracking server with
+basic-auth (tracking) and PostgreSQL (a team's store: MLflow on PostgreSQL with artifacts on S3). Test modules and
+session fixtures start them; these are the shared parts."""
 
 from __future__ import annotations
 
@@ -7,11 +8,14 @@ import base64
 import contextlib
 import json
 import os
+import pwd
 import secrets
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 import urllib.error
 import urllib.request
@@ -140,44 +144,53 @@ def _stop(proc: subprocess.Popen) -> None:
 
 
 @contextlib.contextmanager
-def mlflow_auth_server(root: Path) -> Iterator[MlflowServer]:
-    """``mlflow server --app-name basic-auth`` on loopback, its stores under ``root``, with a user ``trainer`` that
-    may write (MLflow ships no admin password: it comes from ``MLFLOW_AUTH_ADMIN_PASSWORD``; default READ)."""
+def mlflow_auth_server(
+    root: Path,
+    backend_store_uri: str | None = None,
+    artifacts_destination: str | None = None,
+    auth_db_uri: str | None = None,
+    env: dict[str, str] | None = None,
+    workers: int = 1,
+) -> Iterator[MlflowServer]:
+    """``mlflow server --app-name basic-auth`` on loopback, its stores under ``root`` (or the given ones: a
+    PostgreSQL database, an S3 bucket), with a user ``trainer`` that may write (MLflow ships no admin password: it
+    comes from ``MLFLOW_AUTH_ADMIN_PASSWORD``; default READ). ``env``: what the server needs besides (S3 keys)."""
     ini = root / "basic_auth.ini"
     ini.write_text(
         "[mlflow]\n"
         "default_permission = READ\n"
-        f"database_uri = sqlite:///{root}/auth.db\n"
+        f"database_uri = {auth_db_uri or f'sqlite:///{root}/auth.db'}\n"
         "admin_username = admin\n"
         "authorization_function = mlflow.server.auth:authenticate_request_basic_auth\n"
         # Without it every request pays a PBKDF2 hash of the password (1M rounds, seconds on a busy CPU).
         "auth_cache_ttl_seconds = 300\n"
     )
     admin_password = secrets.token_urlsafe(18)
-    env = {k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")}
-    env.update(
+    server_env = {k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")}
+    server_env.update(
         MLFLOW_FLASK_SERVER_SECRET_KEY=secrets.token_hex(16),
         MLFLOW_AUTH_CONFIG_PATH=str(ini),
         MLFLOW_AUTH_ADMIN_PASSWORD=admin_password,
+        **(env or {}),
     )
     port = free_port()
     cmd = [
         *(sys.executable, "-m", "mlflow", "server", "--app-name", "basic-auth"),
-        *("--backend-store-uri", f"sqlite:///{root}/mlflow.db"),
-        *("--artifacts-destination", str(root / "art"), "--serve-artifacts"),
-        *("--host", "127.0.0.1", "--port", str(port), "--workers", "1"),
+        *("--backend-store-uri", backend_store_uri or f"sqlite:///{root}/mlflow.db"),
+        *("--artifacts-destination", artifacts_destination or str(root / "art"), "--serve-artifacts"),
+        *("--host", "127.0.0.1", "--port", str(port), "--workers", str(workers)),
     ]
     log = root / "server.log"
     with log.open("w") as out:
-        proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+        proc = subprocess.Popen(cmd, env=server_env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     uri = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + 180
         while _health(uri) != 200:
             if proc.poll() is not None:
                 raise RuntimeError(f"mlflow server exited {proc.returncode}:\n{log.read_text()[-3000:]}")
             if time.monotonic() > deadline:
-                raise RuntimeError(f"mlflow server did not answer /health within 120 s:\n{log.read_text()[-3000:]}")
+                raise RuntimeError(f"mlflow server did not answer /health within 180 s:\n{log.read_text()[-3000:]}")
             time.sleep(0.5)
         # A user that may write: default READ lets it create an experiment, which it then manages.
         trainer_password = secrets.token_urlsafe(18)
@@ -186,3 +199,137 @@ def mlflow_auth_server(root: Path) -> Iterator[MlflowServer]:
         yield MlflowServer(uri, admin_password, trainer_password, log)
     finally:
         _stop(proc)
+
+
+# ---- PostgreSQL --------------------------------------------------------------------------------------------------
+PG_USER = "postgres"
+"""The unprivileged user Debian's package creates: PostgreSQL refuses to run as root (CI runs as root)."""
+
+
+def pg_bindir() -> Path | None:
+    """PostgreSQL's server programs (initdb, pg_ctl): on PATH, else Debian's ``/usr/lib/postgresql/<N>/bin`` (the
+    newest); None where PostgreSQL is not installed."""
+    if found := shutil.which("initdb"):
+        return Path(found).resolve().parent
+    dirs = [p.parent for p in Path("/usr/lib/postgresql").glob("*/bin/initdb")]
+    dirs.sort(key=lambda d: int(d.parent.name) if d.parent.name.isdigit() else 0)
+    return dirs[-1] if dirs else None
+
+
+@dataclass
+class Postgres:
+    """A PostgreSQL cluster of its own on 127.0.0.1 (password login over TCP; its unix socket in its folder)."""
+
+    bindir: Path
+    root: Path
+    port: int
+    password: str
+    """The superuser ``postgres``'s."""
+
+    @property
+    def data(self) -> Path:
+        return self.root / "data"
+
+    def url(self, user: str, password: str, db: str) -> str:
+        return f"postgresql://{user}:{password}@127.0.0.1:{self.port}/{db}"
+
+    def sql(self, *statements: str, db: str = "postgres") -> None:
+        """Statements as the superuser, each in its own transaction (CREATE DATABASE can't run inside one)."""
+        import psycopg
+
+        with psycopg.connect(host="127.0.0.1", port=self.port, user=PG_USER, password=self.password, dbname=db,
+                             autocommit=True) as conn:  # fmt: skip
+            for statement in statements:
+                conn.execute(statement)
+
+    def database(self, name: str) -> str:
+        """A new database owned by a new login role of the same name; returns its URL (with the role's password)."""
+        password = secrets.token_urlsafe(18)
+        self.sql(f"CREATE ROLE {name} LOGIN PASSWORD '{password}'", f"CREATE DATABASE {name} OWNER {name}")
+        return self.url(name, password, name)
+
+    def ctl(self, *args: str) -> None:
+        """``pg_ctl`` on this cluster (``start``, ``stop``), as the cluster's owner."""
+        opts = f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1"
+        _as_owner([str(self.bindir / "pg_ctl"), "-D", str(self.data), "-l", str(self.root / "server.log"),
+                   "-o", opts, "-w", "-t", "120", *args], self.root)  # fmt: skip
+
+    def stop(self) -> None:
+        self.ctl("stop", "-m", "fast")
+
+    def start(self) -> None:
+        self.ctl("start")
+
+
+def _as_owner(cmd: list[str], cwd: Path) -> None:
+    """Run ``cmd`` as ``postgres`` when this process is root (PostgreSQL refuses root), else as ourselves."""
+    kw: dict = {}
+    if os.getuid() == 0:
+        pw = pwd.getpwnam(PG_USER)
+        kw = {"user": pw.pw_uid, "group": pw.pw_gid, "extra_groups": []}
+    env = {"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "LC_ALL": "C.UTF-8", "HOME": str(cwd)}
+    r = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=180, **kw)
+    if r.returncode != 0:
+        log = cwd / "server.log"
+        tail = log.read_text()[-2000:] if log.exists() else ""
+        raise RuntimeError(f"{' '.join(cmd[:2])} exited {r.returncode}:\n{r.stdout}{r.stderr}\n{tail}")
+
+
+@contextlib.contextmanager
+def postgres_server(durable: bool = False) -> Iterator[Postgres]:
+    """A fresh PostgreSQL cluster (initdb into a temp dir its owner holds), started with ``pg_ctl`` on a free port and
+    removed afterwards. ``durable=False`` turns fsync off (a test's data need not survive a power cut)."""
+    bindir = pg_bindir()
+    if bindir is None:
+        raise FileNotFoundError("PostgreSQL is not installed (no initdb): make setup installs Debian's postgresql")
+    # under /tmp, not pytest's tmp_path: that is root's and mode 0700, which the postgres user can't enter
+    root = Path(tempfile.mkdtemp(prefix="gdwm-pg-"))
+    password = secrets.token_urlsafe(18)
+    (root / "pwfile").write_text(password + "\n")
+    if os.getuid() == 0:
+        pw = pwd.getpwnam(PG_USER)
+        for path in (root, root / "pwfile"):
+            os.chown(path, pw.pw_uid, pw.pw_gid)
+    pg = Postgres(bindir, root, free_port(), password)
+    try:
+        initdb = [str(bindir / "initdb"), "-D", str(pg.data), "-U", PG_USER, "--pwfile", str(root / "pwfile")]
+        _as_owner([*initdb, "--auth-local=trust", "--auth-host=scram-sha-256", "-E", "UTF8", "--locale=C.UTF-8"], root)
+        (root / "pwfile").unlink()
+        if not durable:
+            with (pg.data / "postgresql.conf").open("a") as f:
+                f.write("fsync = off\nsynchronous_commit = off\nfull_page_writes = off\n")
+        pg.start()
+        yield pg
+    finally:
+        with contextlib.suppress(Exception):
+            pg.ctl("stop", "-m", "immediate")
+        shutil.rmtree(root, ignore_errors=True)
+
+
+@dataclass
+class TeamStore:
+    """MLflow with basic-auth on PostgreSQL, artifacts on S3 (moto), as a lab runs it (k8s/): what a driver needs to
+    reach it is ``server.creds()``; the S3 keys stay with the server."""
+
+    pg: Postgres
+    s3: Moto
+    server: MlflowServer
+    backend_url: str
+    """The tracking database's URL (with its role's password)."""
+
+
+@contextlib.contextmanager
+def team_store(root: Path, workers: int = 1, durable: bool = False) -> Iterator[TeamStore]:
+    """PostgreSQL, moto and the server, started in that order and stopped in reverse. One uvicorn worker: with more,
+    uvicorn's supervisor kills a worker that answers its health check late (a loaded 2-core box: a restart loop)."""
+    with postgres_server(durable) as pg:
+        s3 = Moto()
+        try:
+            s3.client().create_bucket(Bucket=BUCKET)
+            backend, auth = pg.database("mlflow"), pg.database("mlflow_auth")
+            env = {**s3.env(), "MLFLOW_S3_ENDPOINT_URL": s3.endpoint}
+            with mlflow_auth_server(root, backend, f"s3://{BUCKET}/mlartifacts", auth, env, workers) as server:
+                yield TeamStore(pg, s3, server, backend)
+        finally:
+            if s3.up:
+                s3.stop()

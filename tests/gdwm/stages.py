@@ -16,7 +16,6 @@ import math
 import os
 import signal
 import time
-from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -24,68 +23,7 @@ import pyarrow.parquet as pq
 import torch
 
 from gdwm.stage import StageContext, stage
-
-
-def _test_dir() -> Path:
-    return Path(os.environ["GDWM_TEST_DIR"])
-
-
-def _record(ctx: StageContext) -> None:
-    with open(_test_dir() / "executions.log", "a") as f:
-        f.write(f"{ctx.name} {ctx.scene or '-'} {ctx.key[:12]} {os.getpid()}\n")
-
-
-def _once(tag: str) -> bool:
-    marker = _test_dir() / f"marker-{tag}"
-    if marker.exists():
-        return False
-    marker.touch()
-    return True
-
-
-def _inject(ctx: StageContext) -> None:
-    target = f"{ctx.name}:{ctx.scene}"
-    if os.environ.get("GDWM_TEST_KILL") == target and _once(target.replace(":", "-")):
-        os.kill(os.getpid(), signal.SIGKILL)
-    if os.environ.get("GDWM_TEST_FAIL") in (target, f"{ctx.name}:seed={ctx.seed}"):
-        raise ValueError(f"injected failure in {os.environ['GDWM_TEST_FAIL']}")
-    if os.environ.get("GDWM_TEST_BLOCK") == ctx.name:
-        _block(ctx.name)
-    if os.environ.get("GDWM_TEST_HOG") == target:
-        _hog()
-    fill, _, path = os.environ.get("GDWM_TEST_FILL", "").partition(":")
-    if fill == ctx.name and _once("fill"):
-        _fill(Path(path))
-
-
-def _fill(path: Path) -> None:
-    chunk = b"\0" * (1 << 16)
-    with open(path, "wb", buffering=0) as f:
-        try:
-            while True:
-                f.write(chunk)
-        except OSError:
-            pass
-    with open(path, "ab", buffering=0) as f:  # the last few bytes too
-        try:
-            while True:
-                f.write(b"\0")
-        except OSError:
-            pass
-
-
-def _hog(most_gb: float = 12.0) -> None:
-    """Fill memory (touched pages) until Ray's OOM killer ends this worker; give up at ``most_gb``."""
-    chunks = []
-    while len(chunks) * 0.25 < most_gb:
-        chunks.append(np.ones(1 << 25))  # 256 MiB, written
-        time.sleep(0.05)
-
-
-def _block(name: str) -> None:
-    (_test_dir() / f"blocked-{name}").touch()
-    while not (_test_dir() / "release").exists():
-        time.sleep(0.1)
+from tests.gdwm.inject import _block, _inject, _once, _record, _test_dir
 
 
 def _setup(cfg: dict) -> dict:

@@ -57,25 +57,31 @@ def launch_facts(cfg: DictConfig) -> dict[str, Any]:
     return {"cwd": os.getcwd(), "workdir": str(Path(cfg.workdir).resolve()), "argv": [redact(a) for a in sys.argv]}
 
 
-def log_launch(tracking, cfg: DictConfig, parent: str, trials: Iterable) -> dict[str, Any]:
+def log_launch(tracking, cfg: DictConfig, parent: str, trials: Iterable, recorded: set[str] | None = None,
+               extra: list | None = None) -> dict[str, Any]:  # fmt: skip
     """The launch's record (``for_launch``), written on the launch's run; the launch's run, and the rows and trials
     this launch computes, tagged with it (a trial every stage of which is cached keeps an earlier record: one search
-    of the launch's runs tells); each tagged trial gets its ``config.yaml``. Returns the record."""
+    of the launch's runs tells, unless the caller knows them, ``recorded``); each tagged trial gets its
+    ``config.yaml``. One write to the store, with the caller's ``extra`` writes (``gdwm.tracking.RunWrite``).
+    Returns the record."""
+    from gdwm.tracking.writes import RunWrite
+
     trials = list(trials)
     rec = for_launch(cfg) | {"launch": launch_facts(cfg)}
     tags = {DIGEST_TAG: rec["digest"], RECORD_RUN_TAG: parent, COMMIT_TAG: commit_tag(rec)}
-    tracking.log_text(parent, json.dumps(rec, indent=1, sort_keys=True), artifact(rec["digest"]))
-    tracking.set_tags(parent, tags)
-    known = {r["run_id"] for r in _launch_runs(tracking, trials) if r["tags"].get(DIGEST_TAG)}
-    tagged = [parent]  # runs tagged so far
+    writes = [RunWrite(parent, tags=tags, texts={artifact(rec["digest"]): json.dumps(rec, indent=1, sort_keys=True)})]
+    if recorded is None:
+        recorded = {r["run_id"] for r in _launch_runs(tracking, trials) if r["tags"].get(DIGEST_TAG)}
+    tagged = {parent}  # runs tagged so far
     for t in trials:
-        if any(r.status != "cached" for r in t.plan) or t.run_id not in known:
+        if any(r.status != "cached" for r in t.plan) or t.run_id not in recorded:
             for run_id in dict.fromkeys((t.run_id, t.row.run_id)):
                 if run_id not in tagged:
-                    tracking.set_tags(run_id, tags)
-                    tagged.append(run_id)
+                    writes.append(RunWrite(run_id, tags=tags))
+                    tagged.add(run_id)
             text = OmegaConf.to_yaml(OmegaConf.create(redact_config(OmegaConf.to_container(t.cfg, resolve=True))))
-            tracking.log_text(t.run_id, text, CONFIG_ARTIFACT)
+            writes.append(RunWrite(t.run_id, texts={CONFIG_ARTIFACT: text}))
+    tracking.write(writes + list(extra or []))
     return rec
 
 

@@ -24,6 +24,7 @@ _WHERE = {
     "owner": ("OWNER_TAG", "RECONCILED_TAG", "AliveExcept", "owner_is_alive", "parse_owner", "process_owner"),
     "params": ("batches", "flatten_params", "truncate"),
     "tracker": ("Tracker",),
+    "writes": ("NewRun", "RunWrite", "WriteQueue"),
 }
 _MODULE = {name: module for module, names in _WHERE.items() for name in names}
 

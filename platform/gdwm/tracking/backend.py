@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import os
 import time
 import uuid
 from collections.abc import Callable, Mapping
@@ -34,9 +35,15 @@ from gdwm.tracking.params import (
     flatten_params,
     truncate,
 )
+from gdwm.tracking.reach import failure_line, probe, unreachable
 from gdwm.tracking.relocate import relocate_store
 from gdwm.tracking.storelock import DEFAULT_TIMEOUT_S, StoreLock, StoreLockTimeout
+from gdwm.tracking.writes import NewRun, RunWrite
 from gdwm.zoo import registry as zoo
+
+# MLflow prints a link per run it ends on a server ("View run ... at: ...") after one more request: gdwm's output names
+# its runs itself, in workers too (they import this module to unpickle a backend).
+os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +72,8 @@ def _one_writer(cls: _C) -> _C:
             except StoreLockTimeout as e:  # one line naming the lock and its holder
                 raise TrackingError(str(e)) from None
             except Exception as e:
+                if not isinstance(e, TrackingError) and unreachable(e):  # a server or database gone: one line
+                    raise TrackingError(failure_line(self.uri, fn.__name__.strip("_"), e)) from e
                 db = sqlite_path(self.uri)
                 if fn.__name__ == "_connect" or db is None or Path(db).exists() or isinstance(e, TrackingError):
                     raise
@@ -104,10 +113,11 @@ class TrackingBackend:
         self._connect()
 
     def _connect(self) -> None:
+        if (why := probe(self.uri)) is not None:  # down, or the password is wrong: now, not after minutes of retries
+            raise TrackingError(why)
         if self.artifact_location:  # a workdir copied or moved since: its store points at itself first
             relocate_store(self.uri, self.artifact_location)
-        self.client = MlflowClient(self.uri)
-        self._monitors: dict[str, SystemMetricsMonitor] = {}
+        self._attach()
         try:
             exp = self.client.get_experiment_by_name(self.experiment)
             if exp is None:
@@ -126,14 +136,20 @@ class TrackingBackend:
             raise refused from e
         self.experiment_id = exp.experiment_id
 
-    # Shipped to workers in server mode: reconnect there instead of pickling a client and its threads.
+    def _attach(self) -> None:
+        self.client = MlflowClient(self.uri)
+        self._monitors: dict[str, SystemMetricsMonitor] = {}
+
+    # Shipped to workers in server mode: a new client there instead of a pickled one and its threads. The experiment
+    # was found (or made) where the backend was built: a stage task pays no request for it.
     def __getstate__(self) -> dict[str, Any]:
-        keys = ("uri", "experiment", "artifact_location", "default_tags", "system_metrics_interval_s", "lock_timeout_s")
+        keys = ("uri", "experiment", "artifact_location", "default_tags", "system_metrics_interval_s",
+                "lock_timeout_s", "experiment_id")  # fmt: skip
         return {k: self.__dict__[k] for k in keys}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
-        self._connect()
+        self._attach()
 
     def _store_lock(self) -> contextlib.AbstractContextManager:
         if (db := sqlite_path(self.uri)) is None:
@@ -159,6 +175,63 @@ class TrackingBackend:
         if STAGE_TAG in all_tags:
             self.start_system_metrics(run_id)
         return run_id
+
+    def create_runs(self, runs: list[NewRun]) -> list[str]:
+        """Create every run (tags, params, texts; ``create_run``'s owner and parent), in order; returns their ids."""
+        ids = []
+        for r in runs:
+            run_id = self.create_run(r.name, r.tags, r.parent_run_id)
+            self.write([RunWrite(run_id, params=r.params, texts=r.texts)])
+            ids.append(run_id)
+        return ids
+
+    def write(self, writes: list[RunWrite]) -> None:
+        """Each run's writes (``RunWrite``): its tags, params and metrics packed into as few ``log_batch`` calls as
+        MLflow's limits allow (MLflow's client splits them), then its artifacts, its zoo versions' tags, its end."""
+        now = int(time.time() * 1000)
+        for w in writes:
+            tags = dict(w.tags)
+            if w.reopen:
+                self.client.update_run(w.run_id, status="RUNNING")
+                tags[OWNER_TAG] = self._owner()
+            ts = now if w.timestamp_ms is None else w.timestamp_ms
+            self.client.log_batch(
+                w.run_id,
+                metrics=[Metric(k, float(v), ts, w.step or 0) for k, v in w.metrics.items()],
+                params=[Param(k, str(v)) for k, v in w.params.items()],
+                tags=[RunTag(k, truncate(redact(str(v)), MAX_TAG_VAL_LENGTH)) for k, v in tags.items()],
+            )
+            for path, text in w.texts.items():
+                self.log_text(w.run_id, text, path)
+            for local, artifact_dir in w.files:
+                self.client.log_artifact(w.run_id, local, artifact_dir)
+            if w.version_tags and w.versions_of:
+                zoo.tag_run_versions(self.client, w.versions_of, w.version_tags)
+            if w.end is not None:
+                self.end_run(w.run_id, w.end)
+
+    def keyed_run(self, match: Mapping[str, str], new: NewRun, resumed: Mapping[str, str], recomputes_tag: str) -> str:
+        """The one run of a unit of work (a stage's cache key), found by its ``match`` tags: the newest unfinished one
+        (FAILED, KILLED, or RUNNING with its owner gone or this writer's owner) is reopened, ``resumed`` tags added: a
+        killed or retried attempt leaves no duplicate. Else ``new`` is created, tagged ``recomputes_tag`` with the
+        newest finished one's id where there is one (whose history stays as it was). A live other driver's RUNNING run
+        is not taken over: that driver computes the same work, into another cache."""
+        where = " and ".join(f"tags.`{k}` = '{v}'" for k, v in match.items())
+        found = self.search_runs(where, order_by=["attributes.start_time DESC"])
+        mine = self._owner()
+        for r in found:
+            owner = r["tags"].get(OWNER_TAG)
+            if r["status"] in ("FAILED", "KILLED") or (
+                r["status"] == "RUNNING" and (owner is None or owner == mine or not owner_is_alive(owner))
+            ):
+                self.reopen_run(r["run_id"])
+                self.set_tags(r["run_id"], resumed)
+                return r["run_id"]
+        tags = dict(new.tags)
+        finished = [r for r in found if r["status"] == "FINISHED"]
+        if finished:
+            tags[recomputes_tag] = finished[0]["run_id"]
+        return self.create_runs([NewRun(new.name, tags, new.parent_run_id, new.params, new.texts)])[0]
 
     def reopen_run(self, run_id: str) -> None:
         """RUNNING again (resuming a KILLED/FAILED run), owned by this backend's owner from now on."""

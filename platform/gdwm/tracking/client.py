@@ -11,6 +11,7 @@ from ray.actor import ActorHandle
 
 from gdwm.errors import one_line
 from gdwm.tracking.backend import Sink, TrackingBackend, TrackingError
+from gdwm.tracking.writes import NewRun, RunWrite
 
 P = ParamSpec("P")
 R = TypeVar("R")
@@ -38,6 +39,15 @@ class TrackingClient:
 
     def create_run(self, name: str, tags: Mapping[str, str], parent_run_id: str | None = None) -> str:
         return self._call(TrackingBackend.create_run, name, tags, parent_run_id)
+
+    def create_runs(self, runs: list[NewRun]) -> list[str]:
+        return self._call(TrackingBackend.create_runs, runs)
+
+    def write(self, writes: list[RunWrite]) -> None:
+        self._call(TrackingBackend.write, writes)
+
+    def keyed_run(self, match: Mapping[str, str], new: NewRun, resumed: Mapping[str, str], recomputes_tag: str) -> str:
+        return self._call(TrackingBackend.keyed_run, match, new, resumed, recomputes_tag)
 
     def reopen_run(self, run_id: str) -> None:
         self._call(TrackingBackend.reopen_run, run_id)

@@ -231,6 +231,20 @@ def tag_versions(client: MlflowClient, cache_keys: Iterable[str], tags: Mapping[
     return sorted(done)
 
 
+def tag_run_versions(client: MlflowClient, run_ids: Iterable[str], tags: Mapping[str, Any]) -> list[tuple[str, int]]:
+    """Add ``tags`` to every version the runs ``run_ids`` registered (the stage runs a sweep's trial used): one search
+    per 100 runs, so a store with no zoo pays one query a trial; returns the ``(name, version)`` tagged."""
+    ids = sorted(set(run_ids))
+    done = []
+    for start in range(0, len(ids), 100):
+        listed = ", ".join(f"'{i}'" for i in ids[start : start + 100])
+        for mv in client.search_model_versions(f"run_id IN ({listed})"):
+            for k, v in tags.items():
+                client.set_model_version_tag(mv.name, mv.version, k, str(v))
+            done.append((mv.name, int(mv.version)))
+    return sorted(done)
+
+
 def metric_tags(metrics: Mapping[str, Any]) -> dict[str, str]:
     """``{"qa/avg": 41.2}`` -> ``{"gdwm.metric.qa/avg": "41.2"}`` (numeric values only)."""
     return {f"{TAG_METRIC}{k}": str(v) for k, v in metrics.items() if _numeric(v)}
