@@ -419,11 +419,11 @@ def _follow_workdir(cfg: DictConfig) -> None:
     db = sqlite_path(str(uri)) if uri else None
     if db is None or not location or not Path(db).is_file():
         return
-    from filelock import FileLock
-
     from gdwm.tracking.relocate import relocate_store
+    from gdwm.tracking.storelock import StoreLock
 
-    with FileLock(f"{db}.lock"):  # the store's one-writer lock (gdwm.tracking.backend)
+    timeout = OmegaConf.select(cfg, "tracking.lock_timeout_s", default=None)
+    with StoreLock(db, *([float(timeout)] if timeout else [])):  # the store's one-writer lock (gdwm.tracking.backend)
         relocate_store(str(uri), str(location))
 
 

@@ -200,9 +200,9 @@ class RunSettings:
     """Print the plan (cached / to run / blocked per stage and scene) and exit; same as --dry-run."""
     live: bool = True
     """Show the live board while running (off when stdout is not a terminal: then one line per event)."""
-    heartbeat_s: float = 30.0
+    heartbeat_s: Annotated[float, Gt(0)] = 30.0
     """Off a terminal: a line for every stage still running this often (its step, loss, scenes and ETA)."""
-    snapshot_s: float = 10.0
+    snapshot_s: Annotated[float, Gt(0)] = 10.0
     """The launch's progress snapshot on its MLflow run (``gdwm.events``) is written at most this often."""
     worker_logs: bool = False
     """Stream Ray workers' stdout/stderr to the driver (errors reach MLflow as error.txt either way)."""

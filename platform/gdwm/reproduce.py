@@ -25,6 +25,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from gdwm.fromenv import env_keys, unshown
+
 
 class ReproduceError(Exception):
     """Bad input, found before anything runs (exit 2): the message names the run and the key."""
@@ -224,11 +226,14 @@ def rebuild(rec: Recorded, workdir: Path) -> tuple[DictConfig, list[str]]:
     except ConfigError as e:
         raise ReproduceError(f"run {rec.run_id}: today's config does not compose with data={data}: {e}") from e
     try:
-        fresh = overlay(cfg, values)
+        fresh = overlay(cfg, unshown(values))
     except ReproduceError as e:
         raise ReproduceError(
             f"run {rec.run_id} (trial '{rec.label}'): its recorded config no longer composes: {e}"
         ) from None
+    if "from_env" in cfg:  # the recorded <env:NAME> values read the environment again: secrets, as load_config says
+        cfg.from_env = {k: v for k, v in env_keys(OmegaConf.to_container(cfg, resolve=False)).items()
+                        if not k.startswith("from_env")}  # fmt: skip
     return cfg, [k for k in fresh if not k.startswith(("args.", "hydra."))]
 
 

@@ -527,7 +527,7 @@ def _failure(root: BaseException, stage: str, running: list[str]) -> tuple[str, 
     over the actor that filled the node, one of those scenes)."""
     if isinstance(root, ray.exceptions.OutOfMemoryError):  # Ray's report is many lines; the cause fits in one
         where = f" scene(s) {running}" if running else ""
-        return f"stage '{stage}'{where} failed: {oom_line(root)}", str(root)
+        return f"stage '{stage}'{where} failed: {oom_line(root)}", "".join(traceback.format_exception(root))
     if isinstance(root, StageFailed):
         text = "\n\n".join(f"== {s} ==\n{tb}" if s else tb for s, tb in root.errors.items())
         return str(root), text

@@ -73,3 +73,20 @@ def test_params_carry_paths_relative_to_the_workdir():
     assert relative_paths(params, "/data/w") == {
         "workdir": ".", "cache.uri": "cache", "tracking.uri": "sqlite:///mlflow.db", "data.root": "../ds",
         "note": "a /slash inside text", "lr": "0.1"}  # fmt: skip
+
+
+def test_a_store_configured_with_a_quoted_file_uri_follows_the_copy(tmp_path):
+    # tracking.artifact_location is a file URI (`${file_uri:...}`), percent-quoted where the path needs it
+    a, b = tmp_path / "a" / "w #1", tmp_path / "b" / "w #1"
+    backend = TrackingBackend(f"sqlite:///{a}/mlflow.db", "gdwm", (a / "mlartifacts").as_uri())
+    run = backend.create_run("r", {"gdwm.kind": "run"})
+    backend.log_text(run, "first", "notes/first.txt")
+    backend.end_run(run)
+    shutil.copytree(a, b)
+    before = _digest(a)
+    assert relocate_store(f"sqlite:///{b}/mlflow.db", (b / "mlartifacts").as_uri()) >= 2  # the experiment and the run
+    copy = TrackingBackend(f"sqlite:///{b}/mlflow.db", "gdwm", (b / "mlartifacts").as_uri())
+    assert Path(copy.client.download_artifacts(run, "notes/first.txt", str(tmp_path))).read_text() == "first"
+    copy.log_text(run, "second", "notes/second.txt")
+    assert (b / "mlartifacts" / run / "artifacts" / "notes" / "second.txt").read_text() == "second"
+    assert _digest(a) == before

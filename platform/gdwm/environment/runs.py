@@ -23,6 +23,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from gdwm.environment.record import commit_tag, environment
+from gdwm.fromenv import recorded
 from gdwm.redact import redact, redact_config
 
 DIGEST_TAG = "gdwm.env"
@@ -74,7 +75,8 @@ def log_launch(tracking, cfg: DictConfig, parent: str, trials: Iterable) -> dict
                 if run_id not in tagged:
                     tracking.set_tags(run_id, tags)
                     tagged.append(run_id)
-            text = OmegaConf.to_yaml(OmegaConf.create(redact_config(OmegaConf.to_container(t.cfg, resolve=True))))
+            # values from the environment as <env:NAME>, never their secret (gdwm.fromenv)
+            text = OmegaConf.to_yaml(OmegaConf.create(redact_config(recorded(t.cfg))))
             tracking.log_text(t.run_id, text, CONFIG_ARTIFACT)
     return rec
 
