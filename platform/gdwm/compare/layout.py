@@ -73,7 +73,8 @@ class ColumnConfig:
     """``higher`` or ``lower`` is better; null = from the name (mae, fid, fvd, fd_*, depth_absrel/rmse: lower)."""
     mean_of: list[str] = field(default_factory=list)
     """An aggregate column (Avg.): the mean of these metrics as printed (``-name`` enters negated, as an error
-    metric does in a score that rewards accuracy), recomputed for every row that has them all, reported rows included; empty = as logged."""
+    metric does in a score that rewards accuracy), recomputed for every row that has them all, reported rows
+    included; empty = as logged."""
 
 
 @dataclass
