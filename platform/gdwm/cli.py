@@ -419,12 +419,16 @@ def _follow_workdir(cfg: DictConfig) -> None:
     db = sqlite_path(str(uri)) if uri else None
     if db is None or not location or not Path(db).is_file():
         return
+    from gdwm.tracking.backend import TrackingError
     from gdwm.tracking.relocate import relocate_store
-    from gdwm.tracking.storelock import StoreLock
+    from gdwm.tracking.storelock import StoreLock, StoreLockTimeout
 
     timeout = OmegaConf.select(cfg, "tracking.lock_timeout_s", default=None)
-    with StoreLock(db, *([float(timeout)] if timeout else [])):  # the store's one-writer lock (gdwm.tracking.backend)
-        relocate_store(str(uri), str(location))
+    try:
+        with StoreLock(db, *([float(timeout)] if timeout else [])):  # the store's one-writer lock (tracking.backend)
+            relocate_store(str(uri), str(location))
+    except StoreLockTimeout as e:  # one line naming the lock and its holder, as the backend says it
+        raise TrackingError(str(e)) from None
 
 
 def _terminated(signum: int, _frame) -> None:
@@ -480,11 +484,11 @@ def main(argv: list[str] | None = None) -> int:
         err_console.print(f"gdwm: config error: {e}", markup=False)
         return 2
     name = f"{command} {sub}".strip()
-    _follow_workdir(cfg)
     main_thread = threading.current_thread() is threading.main_thread()
     # SIGTERM unwinds like Ctrl-C: temp directories and open runs are cleaned up on the way out (exit 143)
     previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
     try:
+        _follow_workdir(cfg)
         return int(spec.run(cfg, overrides) or 0)
     except ConfigError as e:  # found once the command looked closer (a function the config names, say): exit 2
         err_console.print(f"gdwm: config error: {e}", markup=False)
