@@ -498,6 +498,13 @@ def _compute_scenes(sd, subset, env: RunEnv, results, scenes, misses, keys, base
 
 
 def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, bases, done) -> dict[str, str]:
+    """The scenes of ``misses`` on a pool of up to ``num_workers`` actors; returns scene -> traceback of those that
+    failed.
+
+    A scene goes only to an actor that is placed and idle, never to one still waiting for resources: pools of
+    concurrent per-scene stages that each got part of the cluster all make progress (scenes pinned to every actor
+    up front left each pool waiting on its unplaced actor while its placed one sat idle, holding the CPUs the
+    others waited for). Actors no scene needs any more are released at once, placed or not."""
     res = env.resources.get(sd.resources, {})
     n = max(1, min(len(misses), int(res.get("num_workers", 1)) or 1))
     actor_cls = ray.remote(SceneWorker).options(
@@ -506,33 +513,57 @@ def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, bases, don
         max_restarts=env.max_retries,
         max_task_retries=env.max_retries,
     )
-
-    def new_actor():
-        return actor_cls.remote(sd, subset, float(res.get("num_cpus", 1)), env.deterministic)
-
-    actors = [new_actor() for _ in range(n)]
+    starting: dict[ray.ObjectRef, Any] = {}  # an actor's placement (its __ray_ready__) -> the actor
+    idle: list = []
     queue = list(misses)
     running: dict[ray.ObjectRef, tuple[str, Any]] = {}
     errors: dict[str, str] = {}
     lost: dict[str, int] = {}
+    replaced = 0
 
-    def submit(actor) -> None:
-        s = queue.pop(0)
-        ref = actor.process.remote(s, keys[s], bases[s], subset, env, run_id, *results)
-        running[ref] = (s, actor)
+    def new_actor() -> None:
+        a = actor_cls.remote(sd, subset, float(res.get("num_cpus", 1)), env.deterministic)
+        starting[a.__ray_ready__.remote()] = a
 
-    try:
+    def release(actors: list) -> None:
         for a in actors:
-            if queue:
-                submit(a)
-        while running:
-            [ref], _ = ray.wait(list(running), num_returns=1)
+            ray.kill(a)
+
+    for _ in range(n):
+        new_actor()
+    try:
+        while queue or running:
+            while queue and idle:
+                s, actor = queue.pop(0), idle.pop()
+                running[actor.process.remote(s, keys[s], bases[s], subset, env, run_id, *results)] = (s, actor)
+            if not queue:  # the last scenes are running: what waits for them holds resources others need
+                release(idle + list(starting.values()))
+                idle.clear()
+                starting.clear()
+                if not running:
+                    break
+            if not starting and not running and not idle:  # every actor lost for good: start another
+                new_actor()
+            [ref], _ = ray.wait([*running, *starting], num_returns=1)
+            if ref in starting:
+                actor = starting.pop(ref)
+                try:
+                    ray.get(ref)
+                    idle.append(actor)
+                except ray.exceptions.RayActorError as e:
+                    if getattr(e, "actor_init_failed", False):  # its setup raised: the stage's error, not a lost node
+                        raise
+                    replaced += 1  # its node was lost while it started
+                    if replaced > env.max_retries * n:
+                        raise StageFailed(sd.name, {None: f"the stage's actors were lost {replaced} times: {e}"}) from e
+                    new_actor()
+                continue
             s, actor = running.pop(ref)
             try:
                 done[s] = (keys[s], ray.get(ref))
             except ray.exceptions.OutOfMemoryError as e:  # the scene's worker filled the node: not retried
                 errors[s] = oom_line(e)
-                _progress(env, sd.name, s, "failed", message="out of memory")
+                _progress(env, s, "failed", message="out of memory")
             except ray.exceptions.RayTaskError as e:
                 if isinstance(e.cause, SetupFailed):  # the stage's own error: every scene would fail alike
                     raise StageFailed(sd.name, {None: str(e.cause)}, setup=True) from None
@@ -549,15 +580,15 @@ def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, bases, don
                     errors[s] = f"the scene's worker was lost {lost[s]} times: {type(e).__name__}: {e}"
                     _progress(env, s, "failed")
                 else:
-                    if isinstance(e, ray.exceptions.ActorDiedError):
-                        actors[actors.index(actor)] = actor = new_actor()
                     time.sleep(min(2.0 ** lost[s], 10.0))
                     queue.insert(0, s)
-            if queue:
-                submit(actor)
+                if isinstance(e, ray.exceptions.ActorDiedError):
+                    ray.kill(actor)
+                    new_actor()
+                    continue
+            idle.append(actor)
     finally:
-        for a in actors:
-            ray.kill(a)
+        release(idle + list(starting.values()) + [a for _, a in running.values()])
     return errors
 
 

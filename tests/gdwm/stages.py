@@ -217,3 +217,9 @@ def lora_toylib(ctx: StageContext) -> None:
 
     rank = float(ctx.cfg("stage.toy_lora")["rank"]) * int(version("toylib").split(".")[0])
     _train_stage(ctx, ctx.cfg("stage.toy_lora")["steps"], rank + seed_noise(ctx.seed))
+
+
+@stage("scene_pid", "1", config=["stage.scene_pid"], per_scene=True, resources="cpu")
+def scene_pid(ctx: StageContext) -> None:
+    """Writes which process handled the scene (tests/gdwm/test_executor.py: who in a pool did the work)."""
+    (ctx.out_dir / "pid.txt").write_text(str(os.getpid()))

@@ -116,8 +116,9 @@ def test_first_run_executes_every_stage_once(first_run):
     # training curves are step-aware; per-scene metrics carry the scene
     tok = next(r for r in runs if r.data.tags["gdwm.stage"] == "tokenizer")
     assert [m.step for m in first_run.client().get_metric_history(tok.info.run_id, "loss")] == [0, 1, 2, 3]
-    # per-scene actors load their heavy state once each: 3 scenes on 2 actors -> 2 setups, not 3
-    assert len((first_run.root / "setups.log").read_text().splitlines()) == 2
+    # per-scene actors load their heavy state once each: 3 scenes on a pool of 2 -> at most 2 setups, not 3 (a scene
+    # goes to whichever actor is placed and idle: on a loaded machine the first may take all three)
+    assert 1 <= len((first_run.root / "setups.log").read_text().splitlines()) <= 2
     rec = next(r for r in runs if r.data.tags["gdwm.stage"] == "reconstruct")
     assert {"scene-0000/psnr", "scene-0001/psnr", "scene-0002/psnr"} <= set(rec.data.metrics)
 
