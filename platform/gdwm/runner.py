@@ -168,13 +168,32 @@ def init_ray(cfg: DictConfig) -> SimCluster | bool:
         else:
             # address="local": a new Ray of its own, never a cluster some other process started on this machine.
             # A worker Ray's OOM killer ended is not retried (Ray's default retries it 15 times, minutes of the same
-            # end): the stage fails at once naming itself (and its scene).
-            ray.init(address="local", num_cpus=c.num_cpus, num_gpus=c.num_gpus, runtime_env={"env_vars": env_vars},
-                     _system_config={"task_oom_retries": 0}, **kwargs)  # fmt: skip
+            # end): the stage fails at once naming itself (and its scene). The workers' variables go into the
+            # environment Ray's processes start with, not into a job runtime_env: workers of a runtime_env are
+            # started for it, so the workers Ray prestarts (one per CPU) would sit idle while every task and actor
+            # waited for a new process.
+            with _environ(env_vars):
+                ray.init(address="local", num_cpus=c.num_cpus, num_gpus=c.num_gpus,
+                         _system_config={"task_oom_retries": 0}, **kwargs)  # fmt: skip
     if threading.current_thread() is threading.main_thread():
         # ray.init's own SIGTERM handler exits 1; exit 143 as a terminated process should (finally shuts Ray).
         signal.signal(signal.SIGTERM, _sigterm)
     return started
+
+
+@contextlib.contextmanager
+def _environ(values: Mapping[str, str]) -> Iterator[None]:
+    """``os.environ`` with ``values`` set for the block (what processes started in it inherit), then as it was."""
+    before = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def check_address(address: str, timeout_s: float) -> None:
