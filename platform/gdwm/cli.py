@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from gdwm.config import MAIN_GROUPS, ConfigError, drop_mlflow_litter, group_options, load_config, sqlite_path
 from gdwm.errors import one_line
+from gdwm.phases import mark, phase
 from gdwm.redact import redact, redact_config
 from gdwm.term import console, err_console, verbosity
 
@@ -59,8 +60,9 @@ def _data_info(cfg: DictConfig, _args: list[str]) -> int:
 
 
 def _run(cfg: DictConfig, args: list[str]) -> int:
-    from gdwm.dag import DagError
-    from gdwm.runner import PlanError, RunError, run_pipeline
+    with phase("import runner"):
+        from gdwm.dag import DagError
+        from gdwm.runner import PlanError, RunError, run_pipeline
 
     try:
         # `gdwm run` has no command defaults: its config is composed from the user's overrides alone, and so is each
@@ -437,7 +439,9 @@ def _terminated(signum: int, _frame) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    _load_plugin_commands()
+    mark("main")  # from the process' start to here: the interpreter and gdwm.cli's imports
+    with phase("plugins"):
+        _load_plugin_commands()
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(usage())
         return 0 if argv else 2
@@ -479,7 +483,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     defaults = [d for d in spec.defaults if not _user_sets_group(overrides, d.split("=", 1)[0])]
     try:
-        cfg = load_config([*defaults, *(o for o in overrides if not o.startswith("--"))])
+        with phase("compose"):
+            cfg = load_config([*defaults, *(o for o in overrides if not o.startswith("--"))])
     except ConfigError as e:
         err_console.print(f"gdwm: config error: {e}", markup=False)
         return 2
@@ -488,7 +493,8 @@ def main(argv: list[str] | None = None) -> int:
     # SIGTERM unwinds like Ctrl-C: temp directories and open runs are cleaned up on the way out (exit 143)
     previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
     try:
-        _follow_workdir(cfg)
+        with phase("relocate"):
+            _follow_workdir(cfg)
         return int(spec.run(cfg, overrides) or 0)
     except ConfigError as e:  # found once the command looked closer (a function the config names, say): exit 2
         err_console.print(f"gdwm: config error: {e}", markup=False)
@@ -510,6 +516,7 @@ def main(argv: list[str] | None = None) -> int:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
         drop_mlflow_litter(str(cfg.tracking.uri))
+        mark("return")
 
 
 if __name__ == "__main__":
