@@ -22,8 +22,12 @@ def local_cache(tmp_path, monkeypatch) -> Path:
 
 
 def _schema(db: Path) -> tuple[list[tuple], list[tuple]]:
+    """Every table and index with its definition, the definition's lines sorted: a migration that recreates a table
+    (alembic's batch mode) writes its constraints in an order that varies with the process' hash seed."""
     with sqlite3.connect(db) as c:
-        tables = c.execute("select type, name, sql from sqlite_master order by type, name").fetchall()
+        rows = c.execute("select type, name, sql from sqlite_master order by type, name").fetchall()
+        tables = [(kind, name, sorted(line.strip().rstrip(",") for line in (sql or "").splitlines()))
+                  for kind, name, sql in rows]  # fmt: skip
         return tables, c.execute("select version_num from alembic_version").fetchall()
 
 
