@@ -1,7 +1,7 @@
 """Where a command's start-up and teardown time goes: named phases, as JSON lines appended to ``$GDWM_PHASES``.
 
-Off (one environment lookup per phase) unless ``GDWM_PHASES`` names a file; ``benchmarks/bench_startup.py`` sets it
-and splits a toy ``gdwm run`` by phase from what the driver wrote: ``{"phase": NAME, "start": T0, "end": T1}`` in
+Off (one environment lookup per phase) unless ``GDWM_PHASES`` names a file. The start-up benchmark sets it and splits
+a toy ``gdwm run`` by phase from what the driver wrote: ``{"phase": NAME, "start": T0, "end": T1}`` in
 ``time.time()`` seconds, one line per phase, so the time between phases (and before the first, from the process'
 start) is visible too.
 """
