@@ -421,7 +421,6 @@ def _follow_workdir(cfg: DictConfig) -> None:
     db = sqlite_path(str(uri)) if uri else None
     if db is None or not location or not Path(db).is_file():
         return
-    from gdwm.tracking.backend import TrackingError
     from gdwm.tracking.relocate import relocate_store
     from gdwm.tracking.storelock import StoreLock, StoreLockTimeout
 
@@ -430,6 +429,8 @@ def _follow_workdir(cfg: DictConfig) -> None:
         with StoreLock(db, *([float(timeout)] if timeout else [])):  # the store's one-writer lock (tracking.backend)
             relocate_store(str(uri), str(location))
     except StoreLockTimeout as e:  # one line naming the lock and its holder, as the backend says it
+        from gdwm.tracking.backend import TrackingError  # here: it imports Ray, which most commands never need
+
         raise TrackingError(str(e)) from None
 
 
