@@ -484,6 +484,15 @@ def group_options(group: str) -> list[str]:
     return sorted({p.stem for r in roots if (r / group).is_dir() for p in (r / group).glob("*.yaml")})
 
 
+def env_sources(cfg: DictConfig) -> dict[str, str]:
+    """Key -> interpolation of every value of ``cfg`` read from the environment (``from_env`` itself aside); read
+    before the config is resolved. Empty for a config without ``from_env``."""
+    if "from_env" not in cfg:
+        return {}
+    found = env_keys(OmegaConf.to_container(cfg, resolve=False))
+    return {k: v for k, v in found.items() if not k.startswith("from_env")}
+
+
 def load_config(overrides: list[str] | tuple[str, ...] = (), config_name: str = "config") -> DictConfig:
     """Compose and validate; every interpolation is resolved so missing values fail here, not mid-run."""
     _register_all()
@@ -493,11 +502,11 @@ def load_config(overrides: list[str] | tuple[str, ...] = (), config_name: str = 
     try:
         with initialize_config_dir(config_dir=str(conf_dir()), version_base="1.3"):
             cfg = compose(config_name=config_name, overrides=list(overrides))
-        secret = env_keys(OmegaConf.to_container(cfg, resolve=False)) if "from_env" in cfg else {}
+        secret = env_sources(cfg)
         _check_resolvable(cfg)
         OmegaConf.resolve(cfg)
         if "from_env" in cfg:  # values from the environment are recorded as their interpolation (gdwm.fromenv)
-            cfg.from_env = {k: v for k, v in secret.items() if not k.startswith("from_env")}
+            cfg.from_env = secret
         if bad := check_ranges(cfg):  # every numeric knob's range, from its schema (gdwm.knobs)
             raise ConfigError(f"{bad}.")
     except (HydraException, OmegaConfBaseException) as e:

@@ -14,7 +14,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from gdwm.redact import redact
 
 # MLflow's limits (mlflow.utils.validation), held here so that a Ray worker flattening a stage's params needn't import
-# MLflow (1-2 s per process); tests/gdwm/test_tracking.py checks they are MLflow's.
+# MLflow (1-2 s per process); tests/gdwm/test_seed.py checks they are MLflow's.
 MAX_METRICS_PER_BATCH = 1000
 MAX_PARAMS_TAGS_PER_BATCH = 100
 MAX_PARAM_VAL_LENGTH = 6000
