@@ -12,6 +12,7 @@ its artifact root is the server's.
 from __future__ import annotations
 
 import sqlite3
+import sys
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
@@ -73,7 +74,10 @@ def _path(location: str) -> str | None:
 
 def _forget_artifact_repos() -> None:
     """MLflow keeps each run's artifact repository per process, keyed by run id: one this process opened before
-    the move still names the old root."""
+    the move still names the old root. A process that has not imported MLflow has none (and importing it only to
+    clear nothing costs seconds)."""
+    if "mlflow" not in sys.modules:
+        return
     try:
         from mlflow.tracking._tracking_service import utils
     except ImportError:  # a later MLflow without the cache
