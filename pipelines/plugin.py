@@ -32,7 +32,8 @@ def register(cs: ConfigStore) -> None:
     register_resolvers()
     from gdwm.api import register_callables
 
-    for dataset in (SynthConfig, NuScenesConfig, ReleaseConfig):  # the functions gdwm may call for our datasets
+    datasets = (SynthConfig, NuScenesConfig, ReleaseConfig, NuInteractConfig, NuInstructConfig, OmniDriveConfig)
+    for dataset in datasets:  # the functions gdwm may call for our datasets
         register_callables("data.builder", dataset.builder)
         register_callables("data.planner", dataset.planner)
         register_callables("data.summarizer", dataset.summarizer)

@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from gdwm.config import MAIN_GROUPS, ConfigError, drop_mlflow_litter, group_options, load_config, sqlite_path
 from gdwm.errors import one_line
+from gdwm.phases import mark, phase
 from gdwm.redact import redact, redact_config
 from gdwm.term import console, err_console, verbosity
 
@@ -59,8 +60,9 @@ def _data_info(cfg: DictConfig, _args: list[str]) -> int:
 
 
 def _run(cfg: DictConfig, args: list[str]) -> int:
-    from gdwm.dag import DagError
-    from gdwm.runner import PlanError, RunError, run_pipeline
+    with phase("import runner"):
+        from gdwm.dag import DagError
+        from gdwm.runner import PlanError, RunError, run_pipeline
 
     try:
         # `gdwm run` has no command defaults: its config is composed from the user's overrides alone, and so is each
@@ -419,12 +421,17 @@ def _follow_workdir(cfg: DictConfig) -> None:
     db = sqlite_path(str(uri)) if uri else None
     if db is None or not location or not Path(db).is_file():
         return
-    from filelock import FileLock
-
     from gdwm.tracking.relocate import relocate_store
+    from gdwm.tracking.storelock import StoreLock, StoreLockTimeout
 
-    with FileLock(f"{db}.lock"):  # the store's one-writer lock (gdwm.tracking.backend)
-        relocate_store(str(uri), str(location))
+    timeout = OmegaConf.select(cfg, "tracking.lock_timeout_s", default=None)
+    try:
+        with StoreLock(db, *([float(timeout)] if timeout else [])):  # the store's one-writer lock (tracking.backend)
+            relocate_store(str(uri), str(location))
+    except StoreLockTimeout as e:  # one line naming the lock and its holder, as the backend says it
+        from gdwm.tracking.backend import TrackingError  # here: it imports Ray, which most commands never need
+
+        raise TrackingError(str(e)) from None
 
 
 def _terminated(signum: int, _frame) -> None:
@@ -433,7 +440,9 @@ def _terminated(signum: int, _frame) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    _load_plugin_commands()
+    mark("main")  # from the process' start to here: the interpreter and gdwm.cli's imports
+    with phase("plugins"):
+        _load_plugin_commands()
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(usage())
         return 0 if argv else 2
@@ -475,16 +484,18 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     defaults = [d for d in spec.defaults if not _user_sets_group(overrides, d.split("=", 1)[0])]
     try:
-        cfg = load_config([*defaults, *(o for o in overrides if not o.startswith("--"))])
+        with phase("compose"):
+            cfg = load_config([*defaults, *(o for o in overrides if not o.startswith("--"))])
     except ConfigError as e:
         err_console.print(f"gdwm: config error: {e}", markup=False)
         return 2
     name = f"{command} {sub}".strip()
-    _follow_workdir(cfg)
     main_thread = threading.current_thread() is threading.main_thread()
     # SIGTERM unwinds like Ctrl-C: temp directories and open runs are cleaned up on the way out (exit 143)
     previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
     try:
+        with phase("relocate"):
+            _follow_workdir(cfg)
         return int(spec.run(cfg, overrides) or 0)
     except ConfigError as e:  # found once the command looked closer (a function the config names, say): exit 2
         err_console.print(f"gdwm: config error: {e}", markup=False)
@@ -506,6 +517,7 @@ def main(argv: list[str] | None = None) -> int:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
         drop_mlflow_litter(str(cfg.tracking.uri))
+        mark("return")
 
 
 if __name__ == "__main__":

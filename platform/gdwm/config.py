@@ -200,9 +200,9 @@ class RunSettings:
     """Print the plan (cached / to run / blocked per stage and scene) and exit; same as --dry-run."""
     live: bool = True
     """Show the live board while running (off when stdout is not a terminal: then one line per event)."""
-    heartbeat_s: float = 30.0
+    heartbeat_s: Annotated[float, Gt(0)] = 30.0
     """Off a terminal: a line for every stage still running this often (its step, loss, scenes and ETA)."""
-    snapshot_s: float = 10.0
+    snapshot_s: Annotated[float, Gt(0)] = 10.0
     """The launch's progress snapshot on its MLflow run (``gdwm.events``) is written at most this often."""
     worker_logs: bool = False
     """Stream Ray workers' stdout/stderr to the driver (errors reach MLflow as error.txt either way)."""
@@ -484,6 +484,15 @@ def group_options(group: str) -> list[str]:
     return sorted({p.stem for r in roots if (r / group).is_dir() for p in (r / group).glob("*.yaml")})
 
 
+def env_sources(cfg: DictConfig) -> dict[str, str]:
+    """Key -> interpolation of every value of ``cfg`` read from the environment (``from_env`` itself aside); read
+    before the config is resolved. Empty for a config without ``from_env``."""
+    if "from_env" not in cfg:
+        return {}
+    found = env_keys(OmegaConf.to_container(cfg, resolve=False))
+    return {k: v for k, v in found.items() if not k.startswith("from_env")}
+
+
 def load_config(overrides: list[str] | tuple[str, ...] = (), config_name: str = "config") -> DictConfig:
     """Compose and validate; every interpolation is resolved so missing values fail here, not mid-run."""
     return validated(lambda: compose_raw(overrides, config_name), overrides)
@@ -506,11 +515,11 @@ def validated(make: Callable[[], DictConfig], overrides: list[str] | tuple[str, 
     naming the key (``overrides``: what the config was made from, for the message)."""
     try:
         cfg = make()
-        secret = env_keys(OmegaConf.to_container(cfg, resolve=False)) if "from_env" in cfg else {}
+        secret = env_sources(cfg)
         _check_resolvable(cfg)
         OmegaConf.resolve(cfg)
         if "from_env" in cfg:  # values from the environment are recorded as their interpolation (gdwm.fromenv)
-            cfg.from_env = {k: v for k, v in secret.items() if not k.startswith("from_env")}
+            cfg.from_env = secret
         if bad := check_ranges(cfg):  # every numeric knob's range, from its schema (gdwm.knobs)
             raise ConfigError(f"{bad}.")
     except (HydraException, OmegaConfBaseException) as e:

@@ -20,9 +20,10 @@ import re
 from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["env_keys", "env_values", "masked", "recorded", "restore"]
+__all__ = ["env_keys", "env_values", "masked", "recorded", "restore", "unshown"]
 
 _INNER = re.compile(r"\$\{([^${}]*)\}")
+_SHOWN_ENV = re.compile(r"<env:([A-Za-z_][A-Za-z0-9_]*)>")
 _STEP = re.compile(r"\[(\d+)\]|\.?([^.\[\]]+)")
 
 
@@ -136,3 +137,15 @@ def recorded(cfg: Any) -> dict[str, Any]:
         with contextlib.suppress(KeyError, IndexError, TypeError):
             _set(plain, _steps(path), shown)
     return plain
+
+
+def unshown(value: Any) -> Any:
+    """A recorded config (``recorded``) made live again: every ``<env:NAME>`` back to ``${oc.env:NAME}``, so a run
+    composed from the record (``gdwm reproduce``) reads the environment it runs in, as the recorded run did."""
+    if isinstance(value, Mapping):
+        return {k: unshown(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [unshown(v) for v in value]
+    if isinstance(value, str):
+        return _SHOWN_ENV.sub(lambda m: "${oc.env:" + m[1] + "}", value)
+    return value

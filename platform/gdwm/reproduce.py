@@ -25,6 +25,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from gdwm.fromenv import unshown
+
 
 class ReproduceError(Exception):
     """Bad input, found before anything runs (exit 2): the message names the run and the key."""
@@ -207,7 +209,7 @@ def overlay(node: DictConfig, values: dict[str, Any], path: str = "") -> list[st
 def rebuild(rec: Recorded, workdir: Path) -> tuple[DictConfig, list[str]]:
     """The trial's config for a run in ``workdir``: composed today (the dataset's schema picked by its recorded
     name), every recorded value set over it, the workdir's paths moved, the cache and store the fresh workdir's."""
-    from gdwm.config import ConfigError, group_options, load_config
+    from gdwm.config import ConfigError, env_sources, group_options, load_config
 
     launch = (rec.environment or {}).get("launch", {})
     old = launch.get("workdir") or str(Path(rec.config.get("workdir", "")).resolve())
@@ -224,11 +226,13 @@ def rebuild(rec: Recorded, workdir: Path) -> tuple[DictConfig, list[str]]:
     except ConfigError as e:
         raise ReproduceError(f"run {rec.run_id}: today's config does not compose with data={data}: {e}") from e
     try:
-        fresh = overlay(cfg, values)
+        fresh = overlay(cfg, unshown(values))
     except ReproduceError as e:
         raise ReproduceError(
             f"run {rec.run_id} (trial '{rec.label}'): its recorded config no longer composes: {e}"
         ) from None
+    if "from_env" in cfg:  # the recorded <env:NAME> values read the environment again: secrets, as load_config says
+        cfg.from_env = env_sources(cfg)
     return cfg, [k for k in fresh if not k.startswith(("args.", "hydra."))]
 
 

@@ -62,6 +62,7 @@ from gdwm.executor import (
 from gdwm.fromenv import recorded
 from gdwm.keylock import KeyLock
 from gdwm.monitor import Monitor
+from gdwm.phases import phase
 from gdwm.plan import (
     PlanError,
     PlanRow,
@@ -177,17 +178,34 @@ def init_ray(cfg: DictConfig) -> SimCluster | bool:
         else:
             # address="local": a new Ray of its own, never a cluster some other process started on this machine.
             # A worker Ray's OOM killer ended is not retried (Ray's default retries it 15 times, minutes of the same
-            # end): the stage fails at once naming itself (and its scene).
-            # An idle worker lives a minute (Ray's default: one second once more than num_cpus exist): a task that
-            # blocks on the tracking actor lets Ray start another worker, and a sweep's next stage reuses that one
-            # (gdwm, MLflow and the stage's libraries imported) instead of starting a process for it.
-            ray.init(address="local", num_cpus=c.num_cpus, num_gpus=c.num_gpus, runtime_env={"env_vars": env_vars},
-                     _system_config={"task_oom_retries": 0, "idle_worker_killing_time_threshold_ms": IDLE_WORKER_MS},
-                     **kwargs)  # fmt: skip
+            # end): the stage fails at once naming itself (and its scene). The workers' variables go into the
+            # environment Ray's processes start with, not into a job runtime_env: workers of a runtime_env are
+            # started for it, so the workers Ray prestarts (one per CPU) would sit idle while every task and actor
+            # waited for a new process. An idle worker lives a minute (Ray's default: one second once more than
+            # num_cpus exist): a task that blocks on the tracking actor lets Ray start another worker, and a sweep's
+            # next stage reuses that one (gdwm, MLflow and the stage's libraries imported) instead of a new process.
+            system = {"task_oom_retries": 0, "idle_worker_killing_time_threshold_ms": IDLE_WORKER_MS}
+            with _environ(env_vars):
+                ray.init(address="local", num_cpus=c.num_cpus, num_gpus=c.num_gpus, _system_config=system, **kwargs)
     if threading.current_thread() is threading.main_thread():
         # ray.init's own SIGTERM handler exits 1; exit 143 as a terminated process should (finally shuts Ray).
         signal.signal(signal.SIGTERM, _sigterm)
     return started
+
+
+@contextlib.contextmanager
+def _environ(values: Mapping[str, str]) -> Iterator[None]:
+    """``os.environ`` with ``values`` set for the block (what processes started in it inherit), then as it was."""
+    before = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def check_address(address: str, timeout_s: float) -> None:
@@ -244,21 +262,29 @@ def driver_session(cfg: DictConfig) -> Iterator[TrackingClient]:
     """Ray (started here unless already up) and the tracking client of one driver invocation; runs that dead drivers
     left RUNNING are reconciled first. Whatever escapes (Ctrl-C, SIGTERM, an error) ends the runs this driver owns
     KILLED now, not at the next reconcile."""
-    early = None if cfg.tracking.single_writer else open_tracking(cfg.tracking)  # a store that is down: before Ray
+    early = None
+    if not cfg.tracking.single_writer:  # a store that is down fails before Ray starts
+        with phase("tracking start"):
+            early = open_tracking(cfg.tracking)
     try:
-        started = init_ray(cfg)
+        with phase("ray start"):
+            started = init_ray(cfg)
     except BaseException:
         if early is not None:
             early[1]()
         raise
     try:
-        sink, close = early or open_tracking(cfg.tracking)
+        if early is None:
+            with phase("tracking start"):
+                early = open_tracking(cfg.tracking)
+        sink, close = early
     except BaseException:
         _stop_ray(started)
         raise
     tracking = TrackingClient(sink)
     try:
-        tracking.reconcile()
+        with phase("reconcile"):
+            tracking.reconcile()
         yield tracking
     except BaseException as exc:
         try:
@@ -271,8 +297,10 @@ def driver_session(cfg: DictConfig) -> Iterator[TrackingClient]:
                 err_console.print(f"gdwm: could not end this driver's runs ({one_line(e)}); {hint}", markup=False)
         raise
     finally:
-        close()
-        _stop_ray(started)
+        with phase("tracking stop"):
+            close()
+        with phase("ray stop"):
+            _stop_ray(started)
 
 
 def _stop_ray(started: SimCluster | bool) -> None:
@@ -564,7 +592,7 @@ def _failure(root: BaseException, stage: str, running: list[str]) -> tuple[str, 
     over the actor that filled the node, one of those scenes)."""
     if isinstance(root, ray.exceptions.OutOfMemoryError):  # Ray's report is many lines; the cause fits in one
         where = f" scene(s) {running}" if running else ""
-        return f"stage '{stage}'{where} failed: {oom_line(root)}", str(root)
+        return f"stage '{stage}'{where} failed: {oom_line(root)}", "".join(traceback.format_exception(root))
     if isinstance(root, StageFailed):
         text = "\n\n".join(f"== {s} ==\n{tb}" if s else tb for s, tb in root.errors.items())
         return str(root), text
@@ -686,12 +714,14 @@ def launch(
     results: dict[int, TrialResult] = {}
 
     with _launch_lock(cfg, layout), driver_session(cfg) as tracking:
-        parent = layout.open(tracking, cfg, rows, trials)
-        summary.parent_run_id = parent
-        # what `gdwm cache gc` keeps while each trial runs (its end replaces it with what it used), and the environment
-        # these runs ran in (gdwm.environment): one write
-        planned = [RunWrite(t.run_id, texts={CACHE_KEYS: json.dumps(planned_keys(t), indent=1)}) for t in trials]
-        log_launch(tracking, cfg, parent, trials, layout.recorded, planned)
+        with phase("launch runs"):
+            parent = layout.open(tracking, cfg, rows, trials)
+            summary.parent_run_id = parent
+        with phase("environment record"):
+            # what `gdwm cache gc` keeps while each trial runs (its end replaces it with what it used), and the
+            # environment these runs ran in (gdwm.environment): one write
+            planned = [RunWrite(t.run_id, texts={CACHE_KEYS: json.dumps(planned_keys(t), indent=1)}) for t in trials]
+            log_launch(tracking, cfg, parent, trials, layout.recorded, planned)
         # on the driver's node, as the tracking actor: a worker node lost mid-run must not take the board along
         here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
         actor = ProgressActor.options(scheduling_strategy=here).remote()
@@ -727,8 +757,9 @@ def launch(
                                    message=f"{c['trials']} trial(s), {c['executions']} stage executions; "
                                    f"Ray token authentication {auth}"))  # fmt: skip
                 tracking.set_tags(parent, {"gdwm.events": monitor.events_path})
-                summary.executions = execute(trials, tracking.sink, parent, on_trial, monitor,
-                                             stage_tags=layout.stage_tags)  # fmt: skip
+                with phase("stages"):
+                    summary.executions = execute(trials, tracking.sink, parent, on_trial, monitor,
+                                                 stage_tags=layout.stage_tags)  # fmt: skip
                 writes.flush()
                 summary.trials = [results[id(t)] for t in trials]
                 ok = summary.ok
@@ -834,8 +865,9 @@ def run_pipeline(
     trials = [Trial(row, s) for s in trial_seeds]
     one = trial_seeds == [int(cfg.seed)]
     plan_only = dry_run or cfg.run.plan
-    compose(trials, None if one else [o for o in overrides or [] if not o.startswith("--")], "gdwm run", cfg,
-            dry_run=plan_only)  # fmt: skip
+    with phase("plan"):
+        compose(trials, None if one else [o for o in overrides or [] if not o.startswith("--")], "gdwm run", cfg,
+                dry_run=plan_only)  # fmt: skip
     if plan_only:
         print_plan(trials)
         return LaunchSummary(naive=sum(len(t.order) for t in trials))

@@ -72,7 +72,8 @@ def status(cfg: DictConfig) -> int:
         # reading must not create a workdir and an empty store where nothing has run
         raise CommandError(f"no MLflow store at {db}: nothing has run in workdir {cfg.workdir} (or tracking.uri points "
                            "elsewhere)")  # fmt: skip
-    backend = TrackingBackend(uri, cfg.tracking.experiment, cfg.tracking.artifact_location)
+    backend = TrackingBackend(uri, cfg.tracking.experiment, cfg.tracking.artifact_location,
+                              lock_timeout_s=cfg.tracking.lock_timeout_s)  # fmt: skip
     newest = ["attributes.start_time DESC"]
 
     def launches(kind: str, extra: str = "") -> list[dict]:

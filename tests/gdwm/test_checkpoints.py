@@ -84,6 +84,7 @@ def _fit(root: Path, key: str = KEY, loop=_loop) -> tuple[dict | None, Notes]:
         tracker=notes,
         seed=0,
         deterministic=False,
+        progress_sink=None,  # no progress actor: steps are reported nowhere
     )
     return fit(ctx, loop, {"steps": STEPS}).state, notes
 

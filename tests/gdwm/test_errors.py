@@ -136,10 +136,12 @@ def test_a_scene_filling_the_node_s_memory_ends_the_run_with_one_line_naming_sta
     took = time.monotonic() - t0
     last = r.stderr.strip().splitlines()[-1]
     assert r.returncode == 1, r.stderr[-3000:]
-    assert re.fullmatch(
+    m = re.fullmatch(
         r"gdwm run: stage 'reconstruct' scene\(s\) \['scene-0001'\] failed: out of memory: Ray's OOM killer ended the "
         r"worker \(it held [\d.]+GB\), the node's memory being [\d.]+GB used / [\d.]+GB limit; give the stage more "
-        r"memory or fewer parallel workers \(cluster.resources\)",
+        r"memory or fewer parallel workers \(cluster.resources\); traceback: (\S+)",
         last,
-    ), last
+    )
+    assert m, last
+    assert "OutOfMemoryError" in Path(m[1]).read_text()  # Ray's whole report is in the named file
     assert "Top 10 memory users" not in r.stdout + r.stderr and took < 240

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from gdwm.fromenv import env_keys, masked, restore
+from gdwm.fromenv import env_keys, masked, restore, unshown
 
 
 def test_env_keys_follow_interpolations_to_the_environment():
@@ -31,3 +31,11 @@ def test_masked_and_restored_subsets():
     assert shown == {"stage.a": {"token": "<env:HF_TOKEN>", "n": [1, "<env:X>"]}, "seed": 0}
     assert subset["stage.a"]["token"] == "s3cret-value"  # a copy
     assert restore(shown, {"stage.a.token": "s3cret-value", "stage.a.n[1]": "s3cret-too"}) == subset
+
+
+def test_a_recorded_config_reads_the_environment_again():
+    # gdwm reproduce composes a run from its recorded config.yaml, which shows secrets as <env:NAME>
+    recorded = {"stage": {"h": "Bearer <env:HF_TOKEN>", "l": ["<env:A_1>", 3], "n": 2, "s": "<not an env>"}}
+    assert unshown(recorded) == {
+        "stage": {"h": "Bearer ${oc.env:HF_TOKEN}", "l": ["${oc.env:A_1}", 3], "n": 2, "s": "<not an env>"}
+    }

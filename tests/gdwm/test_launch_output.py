@@ -126,7 +126,7 @@ def test_a_copied_workdir_works_alone(terminal_sweep, tmp_path):
     _ok(r)
     assert not (tmp_path / "executions.log").exists()  # every stage cached
     (sweep,) = copy.runs("sweep")
-    assert sweep.info.artifact_uri.startswith(str(copy.work))
+    assert sweep.info.artifact_uri.startswith(copy.work.as_uri())
     assert _digest(toy.work) == before
 
 

@@ -7,6 +7,8 @@ from __future__ import annotations
 import hashlib
 import shutil
 import sqlite3
+import subprocess
+import sys
 from pathlib import Path
 
 from gdwm.cli import main
@@ -73,3 +75,37 @@ def test_params_carry_paths_relative_to_the_workdir():
     assert relative_paths(params, "/data/w") == {
         "workdir": ".", "cache.uri": "cache", "tracking.uri": "sqlite:///mlflow.db", "data.root": "../ds",
         "note": "a /slash inside text", "lr": "0.1"}  # fmt: skip
+
+
+def test_a_store_configured_with_a_quoted_file_uri_follows_the_copy(tmp_path):
+    # tracking.artifact_location is a file URI (`${file_uri:...}`), percent-quoted where the path needs it
+    a, b = tmp_path / "a" / "w #1", tmp_path / "b" / "w #1"
+    backend = TrackingBackend(f"sqlite:///{a}/mlflow.db", "gdwm", (a / "mlartifacts").as_uri())
+    run = backend.create_run("r", {"gdwm.kind": "run"})
+    backend.log_text(run, "first", "notes/first.txt")
+    backend.end_run(run)
+    shutil.copytree(a, b)
+    before = _digest(a)
+    assert relocate_store(f"sqlite:///{b}/mlflow.db", (b / "mlartifacts").as_uri()) >= 2  # the experiment and the run
+    copy = TrackingBackend(f"sqlite:///{b}/mlflow.db", "gdwm", (b / "mlartifacts").as_uri())
+    assert Path(copy.client.download_artifacts(run, "notes/first.txt", str(tmp_path))).read_text() == "first"
+    copy.log_text(run, "second", "notes/second.txt")
+    assert (b / "mlartifacts" / run / "artifacts" / "notes" / "second.txt").read_text() == "second"
+    assert _digest(a) == before
+
+
+def test_a_moved_workdir_is_followed_without_importing_mlflow(tmp_path):
+    """gdwm ui on a copied demo workdir starts in about 2 s; importing MLflow only to clear its (empty) per-process
+    artifact repository cache cost 2.5 s of it."""
+    a = tmp_path / "w"
+    run = _store(a).create_run("r", {"gdwm.kind": "run"})
+    b = tmp_path / "moved"
+    shutil.move(a, b)
+    code = (
+        "import sys; from gdwm.tracking.relocate import relocate_store; "
+        f"n = relocate_store('sqlite:///{b}/mlflow.db', '{b}/mlartifacts'); print(n, 'mlflow' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["2", "False"]  # the experiment's root and the run's artifact URI, MLflow never imported
+    with sqlite3.connect(b / "mlflow.db") as c:
+        assert c.execute("select artifact_uri from runs where run_uuid = ?", (run,)).fetchone()[0].startswith(str(b))

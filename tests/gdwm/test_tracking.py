@@ -23,7 +23,9 @@ from gdwm.config import TrackingConfig
 from gdwm.tracking import (
     OWNER_TAG,
     RECONCILED_TAG,
+    NewRun,
     RunGuard,
+    RunWrite,
     Tracker,
     TrackingBackend,
     TrackingClient,
@@ -235,6 +237,93 @@ def test_open_tracking_single_writer_needs_ray(cfg, monkeypatch):
     monkeypatch.setattr(ray, "is_initialized", lambda: False)
     with pytest.raises(RuntimeError, match=r"tracking.single_writer=true .*call ray.init\(\) first"):
         open_tracking(cfg)
+
+
+# -- many writes in one call ----------------------------------------------------------------------------------------
+
+
+def test_write_packs_each_runs_writes_into_few_store_calls(backend, monkeypatch, tmp_path):
+    table = tmp_path / "predictions.parquet"
+    table.write_bytes(b"PAR1")
+    a, b = backend.create_run("a", {}), backend.create_run("b", {})
+    backend.end_run(b, "KILLED")
+    store = backend.client._tracking_client.store
+    calls = []
+    real = store.log_batch
+    monkeypatch.setattr(store, "log_batch", lambda run_id, **kw: calls.append(
+        (run_id, {k: len(v) for k, v in kw.items() if v})) or real(run_id, **kw))  # fmt: skip
+    backend.write([
+        RunWrite(a, tags={f"gdwm.t{i}": str(i) for i in range(30)}, params={f"p{i}": str(i) for i in range(150)},
+                 metrics={"acc": 0.5, "loss": 2.0}, step=3, texts={"notes/a.txt": "hello"},
+                 files=[(str(table), "evaluate")], end="FINISHED"),
+        RunWrite(b, tags={"gdwm.x": "1"}, reopen=True),
+    ])  # fmt: skip
+    # a's 150 params, 30 tags and 2 metrics in two transactions (MLflow's limit: 100 params a call); b's in one
+    assert calls == [(a, {"metrics": 2, "params": 100, "tags": 30}), (a, {"params": 50}), (b, {"tags": 2})]
+    ra, rb = run_of(backend, a), run_of(backend, b)
+    assert ra["status"] == "FINISHED" and len(ra["params"]) == 150 and ra["tags"]["gdwm.t29"] == "29"
+    assert backend.metric_history(a, "acc") == [(3, 0.5)]
+    arts = {f.path for f in backend.client.list_artifacts(a, "evaluate")} | {
+        f.path for f in backend.client.list_artifacts(a, "notes")}  # fmt: skip
+    assert arts == {"evaluate/predictions.parquet", "notes/a.txt"}
+    assert rb["status"] == "RUNNING" and rb["tags"][OWNER_TAG] == process_owner() and rb["tags"]["gdwm.x"] == "1"
+
+
+def test_create_runs_creates_each_with_its_params_and_texts(backend):
+    parent = backend.create_run("sweep", {})
+    ids = backend.create_runs([NewRun(f"row-{i}", {"gdwm.row": str(i)}, parent, {"x": str(i)}, {"c.json": "{}"})
+                               for i in range(3)])  # fmt: skip
+    runs = [run_of(backend, i) for i in ids]
+    assert [(r["name"], r["params"], r["tags"]["gdwm.row"]) for r in runs] == [
+        (f"row-{i}", {"x": str(i)}, str(i)) for i in range(3)]  # fmt: skip
+    assert {r["tags"][MLFLOW_PARENT_RUN_ID] for r in runs} == {parent}
+    assert [a.path for a in backend.client.list_artifacts(ids[1])] == ["c.json"]
+
+
+def test_keyed_run_reopens_an_abandoned_attempt_never_a_live_drivers(backend):
+    match = {"gdwm.cache_key": "k1", "gdwm.stage": "lora"}
+    new = NewRun("lora-k1", {**match, "gdwm.kind": "stage"}, None, {"lr": "0.1"})
+
+    def keyed() -> str:
+        return backend.keyed_run(match, new, {"gdwm.resumed": "true"}, "gdwm.recomputes")
+
+    first = keyed()
+    assert run_of(backend, first)["params"] == {"lr": "0.1"} and "gdwm.resumed" not in run_of(backend, first)["tags"]
+    assert keyed() == first  # RUNNING and ours (a retried task): reopened, no duplicate
+    backend.end_run(first, "KILLED")
+    assert keyed() == first and run_of(backend, first)["tags"]["gdwm.resumed"] == "true"  # a killed attempt
+    backend.end_run(first)
+    again = keyed()  # a recompute after a finished run: a new run that says which it recomputes
+    assert again != first and run_of(backend, again)["tags"]["gdwm.recomputes"] == first
+    # a live other driver's RUNNING run (this test's parent process) is left to it: that driver computes the key too
+    backend.set_tags(again, {OWNER_TAG: process_owner(os.getppid())})
+    third = keyed()
+    assert third not in (first, again) and run_of(backend, again)["status"] == "RUNNING"
+
+
+def test_a_server_that_does_not_answer_is_one_line_at_connection(tmp_path):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again: nothing listens there
+    with pytest.raises(TrackingError) as e:
+        TrackingBackend(f"http://127.0.0.1:{port}", "gdwm")
+    assert str(e.value) == f"no MLflow server answers at http://127.0.0.1:{port} (connection refused)"
+
+
+def test_a_store_failure_is_told_from_a_refused_request():
+    from mlflow.exceptions import MlflowException
+    from mlflow.protos.databricks_pb2 import RESOURCE_DOES_NOT_EXIST
+
+    from gdwm.tracking.reach import failure_line, unreachable
+
+    down = MlflowException(
+        "API request to http://u:pw@127.0.0.1:5/api/2.0/mlflow/runs/create failed with exception HTTPConnectionPool("
+        "host='127.0.0.1', port=5): Max retries exceeded (Caused by ResponseError('too many 500 error responses'))"
+    )
+    assert unreachable(down) and not unreachable(MlflowException("no run x", error_code=RESOURCE_DOES_NOT_EXIST))
+    assert failure_line("http://u:pw@127.0.0.1:5", "write", down) == (
+        "tracking store http://u:***@127.0.0.1:5 failed write: server errors (HTTP 5xx) on every retry"
+    )
 
 
 # -- single writer --------------------------------------------------------------------------------------------------

@@ -72,8 +72,9 @@ class ColumnConfig:
     direction: Direction | None = None
     """``higher`` or ``lower`` is better; null = from the name (mae, fid, fvd, fd_*, depth_absrel/rmse: lower)."""
     mean_of: list[str] = field(default_factory=list)
-    """An aggregate column (Avg.): the mean of these metrics as printed (``-name`` enters negated, as MAE in
-    NuInstruct's Average*), recomputed for every row that has them all, reported rows included; empty = as logged."""
+    """An aggregate column (Avg.): the mean of these metrics as printed (``-name`` enters negated, as an error
+    metric does in a score that rewards accuracy), recomputed for every row that has them all, reported rows
+    included; empty = as logged."""
 
 
 @dataclass
@@ -165,7 +166,7 @@ def _natural(s: str) -> list:
 
 
 def parts(column: ColumnConfig) -> tuple[tuple[str, int], ...]:
-    """(metric, sign) of ``mean_of``: ``-nuinstruct/mae`` -> (``nuinstruct/mae``, -1)."""
+    """(metric, sign) of ``mean_of``: ``-suite/mae`` -> (``suite/mae``, -1)."""
     return tuple((p[1:], -1) if p.startswith("-") else (p, 1) for p in column.mean_of)
 
 

@@ -4,7 +4,7 @@ Python's ``round`` and ``f"{x:.2f}"`` round the binary value half to even, so 41
 41.08; a table typeset by hand, as the paper's are, reads 41.09. A value is read as its shortest repr (the decimal
 it was written or logged as) and rounded in ``Decimal``.
 
-The average of a row (NuInteract's Avg., OmniDrive's Average, NuInstruct's Average*) is the mean of the values *as
+The average of a row (a paper table's Avg. column) is the mean of the values *as
 printed*, computed exactly in ``Decimal``: the suites that log it, ``gdwm compare`` (which recomputes it for every row
 from its printed cells, reported rows included), ``gdwm regress`` and every report use :func:`mean_of_printed`. A
 binary mean can land just under a tie (73.49 and 54.16: ``math.fsum`` then ``/ 2`` gives 63.824999999999996, which

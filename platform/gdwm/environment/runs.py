@@ -23,6 +23,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from gdwm.environment.record import commit_tag, environment
+from gdwm.fromenv import recorded as as_recorded
 from gdwm.redact import redact, redact_config
 
 DIGEST_TAG = "gdwm.env"
@@ -79,7 +80,8 @@ def log_launch(tracking, cfg: DictConfig, parent: str, trials: Iterable, recorde
                 if run_id not in tagged:
                     writes.append(RunWrite(run_id, tags=tags))
                     tagged.add(run_id)
-            text = OmegaConf.to_yaml(OmegaConf.create(redact_config(OmegaConf.to_container(t.cfg, resolve=True))))
+            # values from the environment as <env:NAME>, never their secret (gdwm.fromenv)
+            text = OmegaConf.to_yaml(OmegaConf.create(redact_config(as_recorded(t.cfg))))
             writes.append(RunWrite(t.run_id, texts={CONFIG_ARTIFACT: text}))
     tracking.write(writes + list(extra or []))
     return rec

@@ -1,4 +1,9 @@
-"""The one object that talks to MLflow, its Ray actor (the single writer for sqlite) and the factory."""
+"""The one object that talks to MLflow, its Ray actor (the single writer for sqlite) and the factory.
+
+MLflow is imported where it is used, not with this module: every Ray worker that runs a stage imports the tracking
+package (a stage's ``Tracker`` talks to the tracking actor) and would otherwise pay MLflow's import, 1-2 s of CPU per
+worker process, for nothing; only the backend itself (the actor, or the process holding a server-mode backend) does.
+"""
 
 from __future__ import annotations
 
@@ -11,15 +16,9 @@ import uuid
 from collections.abc import Callable, Mapping
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import ray
-from mlflow import MlflowClient
-from mlflow.entities import Metric, Param, RunStatus, RunTag, ViewType
-from mlflow.exceptions import MlflowException
-from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
-from mlflow.utils.credentials import read_mlflow_creds
-from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID
 from ray.actor import ActorHandle
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
@@ -37,9 +36,14 @@ from gdwm.tracking.params import (
 )
 from gdwm.tracking.reach import failure_line, probe, unreachable
 from gdwm.tracking.relocate import relocate_store
+from gdwm.tracking.seed import seed_store
 from gdwm.tracking.storelock import DEFAULT_TIMEOUT_S, StoreLock, StoreLockTimeout
 from gdwm.tracking.writes import NewRun, RunWrite
 from gdwm.zoo import registry as zoo
+
+if TYPE_CHECKING:
+    from mlflow.exceptions import MlflowException
+    from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
 
 # MLflow prints a link per run it ends on a server ("View run ... at: ...") after one more request: gdwm's output names
 # its runs itself, in workers too (they import this module to unpickle a backend).
@@ -113,10 +117,13 @@ class TrackingBackend:
         self._connect()
 
     def _connect(self) -> None:
+        from mlflow.exceptions import MlflowException
+
         if (why := probe(self.uri)) is not None:  # down, or the password is wrong: now, not after minutes of retries
             raise TrackingError(why)
         if self.artifact_location:  # a workdir copied or moved since: its store points at itself first
             relocate_store(self.uri, self.artifact_location)
+        seed_store(self.uri)  # a new sqlite store: a copy of an empty one, not fifty migrations
         self._attach()
         try:
             exp = self.client.get_experiment_by_name(self.experiment)
@@ -137,6 +144,8 @@ class TrackingBackend:
         self.experiment_id = exp.experiment_id
 
     def _attach(self) -> None:
+        from mlflow import MlflowClient
+
         self.client = MlflowClient(self.uri)
         self._monitors: dict[str, SystemMetricsMonitor] = {}
 
@@ -167,6 +176,8 @@ class TrackingBackend:
 
     def create_run(self, name: str, tags: Mapping[str, str], parent_run_id: str | None = None) -> str:
         """A RUNNING run; stage runs (tagged ``gdwm.stage``) also get system metrics."""
+        from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID
+
         all_tags = {OWNER_TAG: self._owner(), **self.default_tags, **tags}
         if parent_run_id:
             all_tags[MLFLOW_PARENT_RUN_ID] = parent_run_id
@@ -188,6 +199,8 @@ class TrackingBackend:
     def write(self, writes: list[RunWrite]) -> None:
         """Each run's writes (``RunWrite``): its tags, params and metrics packed into as few ``log_batch`` calls as
         MLflow's limits allow (MLflow's client splits them), then its artifacts, its zoo versions' tags, its end."""
+        from mlflow.entities import Metric, Param, RunTag
+
         now = int(time.time() * 1000)
         for w in writes:
             tags = dict(w.tags)
@@ -241,6 +254,8 @@ class TrackingBackend:
             self.start_system_metrics(run_id, resume=True)
 
     def log_params(self, run_id: str, params: Mapping[str, Any]) -> None:
+        from mlflow.entities import Param
+
         items = [Param(k, v) for k, v in flatten_params(params).items()]
         for chunk in batches(items, MAX_PARAMS_TAGS_PER_BATCH):
             self.client.log_batch(run_id, params=chunk)
@@ -248,12 +263,16 @@ class TrackingBackend:
     def log_metrics(
         self, run_id: str, metrics: Mapping[str, float], step: int | None = None, timestamp_ms: int | None = None
     ) -> None:
+        from mlflow.entities import Metric
+
         ts = int(time.time() * 1000) if timestamp_ms is None else timestamp_ms
         items = [Metric(k, float(v), ts, step or 0) for k, v in metrics.items()]
         for chunk in batches(items, MAX_METRICS_PER_BATCH):
             self.client.log_batch(run_id, metrics=chunk)
 
     def set_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
+        from mlflow.entities import RunTag
+
         items = [RunTag(k, truncate(redact(str(v)), MAX_TAG_VAL_LENGTH)) for k, v in tags.items()]
         for chunk in batches(items, MAX_PARAMS_TAGS_PER_BATCH):
             self.client.log_batch(run_id, tags=chunk)
@@ -267,10 +286,14 @@ class TrackingBackend:
     def register_component(self, run_id: str, name: str, local_path: str, variant: str, tags: Mapping[str, str]) -> int:
         """Log ``local_path`` as the MLflow model ``zoo/<name>`` of the run and register it as a new version of
         ``name`` (alias ``candidate``); returns the version."""
+        from gdwm.zoo import registry as zoo
+
         return zoo.register(self.client, run_id, name, local_path, variant, tags)
 
     def tag_versions(self, cache_keys: list[str], tags: Mapping[str, str]) -> list[tuple[str, int]]:
         """Add ``tags`` to the zoo versions registered by the stage runs with these cache keys."""
+        from gdwm.zoo import registry as zoo
+
         return zoo.tag_versions(self.client, cache_keys, tags)
 
     def end_run(self, run_id: str, status: str = "FINISHED") -> None:
@@ -286,6 +309,8 @@ class TrackingBackend:
         created the run (the stage's task)."""
         if run_id in self._monitors or self.system_metrics_interval_s <= 0:
             return
+        from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+
         monitor = SystemMetricsMonitor(
             run_id, sampling_interval=self.system_metrics_interval_s, resume_logging=resume, tracking_uri=self.uri
         )
@@ -305,6 +330,8 @@ class TrackingBackend:
     def search_runs(
         self, filter_string: str = "", max_results: int = 1000, order_by: list[str] | None = None
     ) -> list[dict]:
+        from mlflow.entities import ViewType
+
         out: list[dict] = []
         token = None
         while len(out) < max_results:
@@ -328,6 +355,8 @@ class TrackingBackend:
 
     def reconcile(self, is_alive: Callable[[str], bool] | None = None) -> list[str]:
         """End KILLED every RUNNING run whose owner is gone (or unknown); returns their ids."""
+        from mlflow.entities import RunStatus
+
         is_alive = is_alive or owner_is_alive
         now = datetime.now(UTC).isoformat(timespec="seconds")
         killed = []
@@ -345,6 +374,8 @@ class TrackingBackend:
 
 def _refused(uri: str, experiment: str, e: MlflowException) -> PermissionError | None:
     """A server's 401/403 as an error that says what to set (the CLI prints it, exit 1); None for others."""
+    from mlflow.utils.credentials import read_mlflow_creds
+
     user = read_mlflow_creds().username  # the name only, never the password
     uri = redact(uri)
     status = e.get_http_status_code()

@@ -9,15 +9,16 @@ from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from mlflow.utils.validation import (
-    MAX_METRICS_PER_BATCH,
-    MAX_PARAM_VAL_LENGTH,
-    MAX_PARAMS_TAGS_PER_BATCH,
-    MAX_TAG_VAL_LENGTH,
-)
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from gdwm.redact import redact
+
+# MLflow's limits (mlflow.utils.validation), held here so that a Ray worker flattening a stage's params needn't import
+# MLflow (1-2 s per process); tests/gdwm/test_seed.py checks they are MLflow's.
+MAX_METRICS_PER_BATCH = 1000
+MAX_PARAMS_TAGS_PER_BATCH = 100
+MAX_PARAM_VAL_LENGTH = 6000
+MAX_TAG_VAL_LENGTH = 8000
 
 __all__ = [
     "MAX_METRICS_PER_BATCH",

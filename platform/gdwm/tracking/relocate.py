@@ -12,7 +12,9 @@ its artifact root is the server's.
 from __future__ import annotations
 
 import sqlite3
+import sys
 from pathlib import Path
+from urllib.parse import unquote, urlparse
 
 from gdwm.config import sqlite_path
 
@@ -34,21 +36,21 @@ def relocate_store(uri: str, artifact_location: str | None) -> int:
     """Re-root a moved workdir's sqlite store onto ``artifact_location`` (module docstring); returns how many
     locations were rewritten (0: nothing to do, or not a local sqlite store). The caller holds the store's lock."""
     db_path = sqlite_path(uri)
-    if db_path is None or not artifact_location or "://" in artifact_location or not Path(db_path).is_file():
+    new = _path(artifact_location) if artifact_location else None
+    if db_path is None or new is None or not Path(db_path).is_file():
         return 0
-    new = str(Path(artifact_location).resolve())
+    new = str(Path(new).resolve())
     with sqlite3.connect(db_path) as db:
-        if "experiments" not in _tables(db):
-            return 0
-        old_roots = [
-            loc.removeprefix("file://")
-            for (loc,) in db.execute("select artifact_location from experiments")
-            if loc and Path(loc.removeprefix("file://")).name == Path(new).name and loc.removeprefix("file://") != new
-        ]
         tables = _tables(db)
+        if "experiments" not in tables:
+            return 0
+        roots = (_path(loc) for (loc,) in db.execute("select artifact_location from experiments") if loc)
+        old_roots = [old for old in roots if old and Path(old).name == Path(new).name and old != new]
         changed = 0
         for old in dict.fromkeys(old_roots):
-            for prefix, target in ((old, new), (f"file://{old}", f"file://{new}")):
+            # a location is written as a path, as file://<path> or as a percent-quoted file URI (Path.as_uri)
+            forms = {(old, new), (f"file://{old}", f"file://{new}"), (Path(old).as_uri(), Path(new).as_uri())}
+            for prefix, target in forms:
                 for table, col in COLUMNS:
                     if table not in tables:
                         continue
@@ -63,9 +65,19 @@ def relocate_store(uri: str, artifact_location: str | None) -> int:
     return changed
 
 
+def _path(location: str) -> str | None:
+    """The local path an artifact location names (a path or a ``file:`` URI, quoted or not); None for a remote one."""
+    if location.startswith("file:"):
+        return unquote(urlparse(location).path)
+    return None if "://" in location else location
+
+
 def _forget_artifact_repos() -> None:
     """MLflow keeps each run's artifact repository per process, keyed by run id: one this process opened before
-    the move still names the old root."""
+    the move still names the old root. A process that has not imported MLflow has none (and importing it only to
+    clear nothing costs seconds)."""
+    if "mlflow" not in sys.modules:
+        return
     try:
         from mlflow.tracking._tracking_service import utils
     except ImportError:  # a later MLflow without the cache

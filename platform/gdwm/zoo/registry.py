@@ -9,6 +9,8 @@ Downloads stay inside the store: a version whose files are a local directory is 
 everything under it with symlinks followed, resolves inside the artifact directory of the run that registered it
 (where ``register`` logs them, ``<run artifacts>/zoo/<name>``); a version registered by no run, or pointing elsewhere
 (``..``, another directory, a symlink leading out), is a ZooError naming it. Remote sources are their store's business.
+
+MLflow is imported by the functions that call it: the tag helpers are imported by every stage's Ray worker.
 """
 
 from __future__ import annotations
@@ -17,17 +19,15 @@ import copy
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from mlflow import MlflowClient
-from mlflow.entities.model_registry import ModelVersion, RegisteredModel
-from mlflow.exceptions import MlflowException
-from mlflow.models import Model
-from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
-from mlflow.store.artifact.local_artifact_repo import LocalArtifactRepository
 from omegaconf import DictConfig, ListConfig
 
 from gdwm.zoo.refs import CANDIDATE, NAME_PREFIX, Ref, ZooError, is_ref, parse_ref
+
+if TYPE_CHECKING:
+    from mlflow import MlflowClient
+    from mlflow.entities.model_registry import ModelVersion, RegisteredModel
 
 FLAVOR = "gdwm"
 TAG_VARIANT, TAG_STAGE, TAG_KEY, TAG_SCENE = "gdwm.variant", "gdwm.stage", "gdwm.cache_key", "gdwm.scene"
@@ -55,6 +55,9 @@ def register(
     if not src.exists():
         raise ZooError(f"{name}: {src} does not exist")
     files = [p.relative_to(src).as_posix() for p in sorted(src.rglob("*")) if p.is_file()] if src.is_dir() else None
+    from mlflow.exceptions import MlflowException
+    from mlflow.models import Model
+
     artifact_path = f"zoo/{name}"
     model = Model(run_id=run_id, artifact_path=artifact_path)
     model.add_flavor(FLAVOR, component=name, variant=variant, files=[src.name] if files is None else files)
@@ -90,6 +93,8 @@ def versions(client: MlflowClient, name: str) -> list[ModelVersion]:
 
 
 def _model(client: MlflowClient, name: str) -> RegisteredModel:
+    from mlflow.exceptions import MlflowException
+
     try:
         return client.get_registered_model(name)
     except MlflowException as e:
@@ -132,6 +137,8 @@ def pin_references(cfg: DictConfig, tracking_uri: str, subtrees: Iterable[str] |
     nothing is a ZooError naming the config key and the reference."""
     if next(_references(cfg, subtrees), None) is None:
         return cfg
+    from mlflow import MlflowClient
+
     client = MlflowClient(tracking_uri, registry_uri=tracking_uri)
     pinned = copy.deepcopy(cfg)
     for node, k, key, text in list(_references(pinned, subtrees)):
@@ -164,12 +171,17 @@ def download(tracking_uri: str, name: str, version: int, dst: Path) -> Path:
 
 def flavor(tracking_uri: str, name: str, version: int) -> dict:
     """The ``gdwm`` flavor of a version's ``MLmodel``: component, variant, files."""
+    from mlflow.models import Model
+
     with tempfile.TemporaryDirectory(prefix="gdwm-zoo-") as tmp:
         return Model.load(_fetch(tracking_uri, name, version, "MLmodel", Path(tmp))).flavors[FLAVOR]
 
 
 def _fetch(tracking_uri: str, name: str, version: int, path: str, dst: Path) -> str:
     # Not models:/ URIs: MLflow resolves those against the process-global registry, not this store.
+    from mlflow import MlflowClient
+    from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
+
     client = MlflowClient(tracking_uri, registry_uri=tracking_uri)
     source = client.get_model_version_download_uri(name, str(version))
     repo = get_artifact_repository(source, tracking_uri=tracking_uri)
@@ -200,6 +212,9 @@ def check_contained(client: MlflowClient, name: str, version: int, source: str, 
 
 def _local_dir(uri: str, tracking_uri: str) -> Path | None:
     """The local directory an artifact URI stands for (``runs:/`` and ``models:/`` followed); None when remote."""
+    from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
+    from mlflow.store.artifact.local_artifact_repo import LocalArtifactRepository
+
     repo = get_artifact_repository(uri, tracking_uri=tracking_uri)
     while getattr(repo, "repo", None) is not None:
         repo = repo.repo

@@ -11,8 +11,6 @@ import pytest
 from pipelines.data.benchmark import UNMATCHED_FILE, summary_counts
 from pipelines.data.layout import CAMERAS, DataError
 from pipelines.data.nuinstruct import NuInstructConfig, build
-from pipelines.data.nuscenes import NuScenesConfig
-from pipelines.data.nuscenes import build as convert
 from pipelines.data.reader import GSQADataset
 from tests.pipelines.data.fixtures_benchmarks import (
     NUINSTRUCT,
@@ -23,14 +21,7 @@ from tests.pipelines.data.fixtures_benchmarks import (
     write_nuinstruct,
     write_omnidrive,
 )
-from tests.pipelines.data.fixtures_nuscenes import write_nuscenes
 from tests.pipelines.data.test_nuscenes import assert_nothing_published
-
-
-@pytest.fixture(scope="module")
-def converted(tmp_path_factory) -> Path:
-    nus = write_nuscenes(tmp_path_factory.mktemp("nus"))
-    return convert(NuScenesConfig(width=32, height=18), tmp_path_factory.mktemp("conv") / "nuscenes", str(nus.root))
 
 
 @pytest.fixture(scope="module")

@@ -10,19 +10,10 @@ import pytest
 
 from pipelines.data.benchmark import summary_counts
 from pipelines.data.layout import CAMERAS, DataError
-from pipelines.data.nuscenes import NuScenesConfig
-from pipelines.data.nuscenes import build as convert
 from pipelines.data.omnidrive import QUESTION, OmniDriveConfig, build
 from pipelines.data.reader import GSQADataset
 from tests.pipelines.data.fixtures_benchmarks import NUINSTRUCT, OMNIDRIVE, UNMATCHED, tok, write_omnidrive
-from tests.pipelines.data.fixtures_nuscenes import write_nuscenes
 from tests.pipelines.data.test_nuscenes import assert_nothing_published
-
-
-@pytest.fixture(scope="module")
-def converted(tmp_path_factory) -> Path:
-    nus = write_nuscenes(tmp_path_factory.mktemp("nus"))
-    return convert(NuScenesConfig(width=32, height=18), tmp_path_factory.mktemp("conv") / "nuscenes", str(nus.root))
 
 
 @pytest.fixture(scope="module")
