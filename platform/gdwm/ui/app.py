@@ -206,7 +206,7 @@ def create_app(ctx: Context, auth: Any = None) -> Starlette:
     def download(request: Request) -> Response:
         sweep = _sweep(request)
         fmt = request.path_params["fmt"]
-        entry = ctx.tables.get(sweep.run["run_id"])
+        entry = pages.want_table(ctx, sweep)  # asked for before its page was opened: computed now
         layout = sweep.config.get("layout") or "table"
         if entry is None or entry.table is None or (fmt == "html" and entry.report is None):
             msg = "being computed" if entry is not None and entry.state != "failed" else "not available"
