@@ -166,10 +166,11 @@ def test_compare_and_the_dashboard_read_the_server(team, four, tmp_path):
                        capture_output=True, text=True, timeout=WAIT_S)  # fmt: skip
     _ok(c)
     csv = (out / "nuinteract.csv").read_text()
-    assert all(f"{light_value(x, 0):.2f}" in csv for x in ROWS["team_b"])
+    assert all(f",{light_value(x, 0)!r}," in csv for x in ROWS["team_b"]), csv  # the CSV's full-precision means
     trainer = ("trainer", team.server.trainer_password)
     env = {k: v for k, v in d.env().items() if k.startswith(("MLFLOW_", "AWS_"))}
-    with dashboard("tracking=server", f"workdir={d.root / 'w'}", **env) as dash:
+    # as on k8s (ui.auth=mlflow): a request needs credentials the MLflow server accepts
+    with dashboard("tracking=server", "ui.auth=mlflow", f"workdir={d.root / 'w'}", **env) as dash:
         status, page = _get(f"{dash.base}/", trainer)
         assert status == 200 and all(s in page for s in ROWS)  # every sweep on the server is listed
         sweep_id = next(r.info.run_id for r in _of(_runs(team), "sweep", "team_b"))
@@ -236,28 +237,33 @@ def test_the_store_going_down_mid_sweep_fails_in_one_line_and_the_next_launch_co
     the driver exits 1; what was computed stays in the cache, and the next launch (PostgreSQL back) finishes the
     sweep without computing it again. Runs last in this module: the store blinks."""
     d = Driver(tmp_path, team, data)
-    quick = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "1", "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "0.5"}
+    quick = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "1", "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "1"}
     proc = d.start("team_down", GDWM_TEST_BLOCK="score", **quick)
+    stopped = False
     try:
         _wait_file(tmp_path / "blocked-score", proc)
         team.pg.stop()
+        stopped = True
         (tmp_path / "release").touch()
         r = _done(proc)
     finally:
         if proc.poll() is None:
             proc.kill()
-        team.pg.start()
+        if stopped:
+            team.pg.start()
     assert r.returncode == 1, r.stdout[-3000:] + r.stderr[-3000:]
     uri = team.server.uri
     assert f"tracking store {uri} failed" in r.stdout + r.stderr
     failed = [x for x in (r.stdout + r.stderr).splitlines() if "stage 'score'" in x and "failed" in x]
     assert failed and all(f"TrackingError: tracking store {uri} failed" in x for x in failed), failed
     assert "Traceback" not in r.stderr and team.server.trainer_password not in r.stdout + r.stderr
-    before = Counter(s for s, _ in d.executions())
-    assert before["score"] >= 1
+    before = d.executions()
+    assert Counter(s for s, _ in before)["score"] >= 1
     _ok(d.sweep("team_down"))
-    after = Counter(s for s, _ in d.executions())
-    assert after == before  # every stage output was in the cache: nothing ran again
+    after = d.executions()
+    # what the first launch computed came from the cache: each (stage, key) executed once over both launches
+    assert after[: len(before)] == before and len(set(after)) == len(after), after
+    assert Counter(s for s, _ in after) == {"prep": 1, "fit": 2, "score": 2}
     runs = _runs(team, "tags.`gdwm.sweep` = 'team_down'")
     trials = {r.data.tags["gdwm.row"]: r for r in _of(runs, "trial")}
     assert {k: (t.info.status, t.data.metrics["acc"]) for k, t in trials.items()} == {

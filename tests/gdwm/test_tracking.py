@@ -301,6 +301,25 @@ def test_keyed_run_reopens_an_abandoned_attempt_never_a_live_drivers(backend):
     assert third not in (first, again) and run_of(backend, again)["status"] == "RUNNING"
 
 
+def test_an_experiment_another_driver_made_first_is_used(tmp_path, monkeypatch):
+    """Drivers starting at once on a shared server all find no experiment; all but one are refused creating it
+    (RESOURCE_ALREADY_EXISTS) and must use the one that was made."""
+    import mlflow
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    first = TrackingBackend(uri, "team", str(tmp_path / "mlartifacts"))
+    real = mlflow.MlflowClient.get_experiment_by_name
+    calls = []
+
+    def late(self, name):  # the first look happened before the other driver created it
+        calls.append(name)
+        return None if len(calls) == 1 else real(self, name)
+
+    monkeypatch.setattr(mlflow.MlflowClient, "get_experiment_by_name", late)
+    second = TrackingBackend(uri, "team", str(tmp_path / "mlartifacts"))
+    assert calls == ["team", "team"] and second.experiment_id == first.experiment_id
+
+
 def test_a_server_that_does_not_answer_is_one_line_at_connection(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -76,16 +76,18 @@ def _one_writer(cls: _C) -> _C:
             except StoreLockTimeout as e:  # one line naming the lock and its holder
                 raise TrackingError(str(e)) from None
             except Exception as e:
-                if not isinstance(e, TrackingError) and unreachable(e):  # a server or database gone: one line
-                    raise TrackingError(failure_line(self.uri, fn.__name__.strip("_"), e)) from e
-                db = sqlite_path(self.uri)
-                if fn.__name__ == "_connect" or db is None or Path(db).exists() or isinstance(e, TrackingError):
+                if isinstance(e, TrackingError):
                     raise
-                # sqlite's own words are "attempt to write a readonly database"
-                raise TrackingError(
-                    f"tracking store {db} was deleted while gdwm was using it ({one_line(e).splitlines()[0]}); "
-                    "the runs of this command went with it: run it again to start a new store"
-                ) from e
+                db = sqlite_path(self.uri)
+                if fn.__name__ != "_connect" and db is not None and not Path(db).exists():
+                    # sqlite's own words are "attempt to write a readonly database"
+                    raise TrackingError(
+                        f"tracking store {db} was deleted while gdwm was using it ({one_line(e).splitlines()[0]}); "
+                        "the runs of this command went with it: run it again to start a new store"
+                    ) from e
+                if unreachable(e):  # a server or database gone: one line
+                    raise TrackingError(failure_line(self.uri, fn.__name__.strip("_"), e)) from e
+                raise
 
         return wrapper
 
@@ -128,10 +130,17 @@ class TrackingBackend:
         try:
             exp = self.client.get_experiment_by_name(self.experiment)
             if exp is None:
-                self.experiment_id = self.client.create_experiment(
-                    self.experiment, self.artifact_location, tags={EXPERIMENT_KIND: TRAINING}
-                )
-                return
+                try:
+                    self.experiment_id = self.client.create_experiment(
+                        self.experiment, self.artifact_location, tags={EXPERIMENT_KIND: TRAINING}
+                    )
+                    return
+                except MlflowException as e:  # another driver on a shared server made it first: use that one
+                    if e.error_code != "RESOURCE_ALREADY_EXISTS":
+                        raise
+                    exp = self.client.get_experiment_by_name(self.experiment)
+                    if exp is None:
+                        raise
             if exp.lifecycle_stage == "deleted":
                 self.client.restore_experiment(exp.experiment_id)
             if EXPERIMENT_KIND not in exp.tags:
