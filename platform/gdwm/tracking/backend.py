@@ -25,6 +25,7 @@ from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 from gdwm.config import sqlite_path
 from gdwm.errors import one_line
 from gdwm.redact import redact
+from gdwm.tracking.errors import TrackingError
 from gdwm.tracking.owner import OWNER_TAG, RECONCILED_TAG, owner_is_alive, process_owner
 from gdwm.tracking.params import (
     MAX_METRICS_PER_BATCH,
@@ -417,10 +418,6 @@ def run_dict(run) -> dict:
 TrackingActor = ray.remote(num_cpus=0, max_concurrency=1)(TrackingBackend)
 
 Sink = TrackingBackend | ActorHandle
-
-
-class TrackingError(RuntimeError):
-    """The tracking store cannot be reached or its actor died; the message is one line naming it."""
 
 
 def _field(cfg: Any, name: str, default: Any) -> Any:

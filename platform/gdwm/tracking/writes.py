@@ -83,7 +83,7 @@ class WriteQueue:
 def _wait(refs: list[ray.ObjectRef]) -> None:
     """Every write done; the first error as a ``TrackingError`` naming it (the client's words for a refused write)."""
     from gdwm.errors import one_line
-    from gdwm.tracking.backend import TrackingError
+    from gdwm.tracking.errors import TrackingError
 
     try:
         ray.get(refs)
