@@ -1,13 +1,6 @@
-"""Test-only stages with the real pipeline's shape; behaviour injected through environment variables.
-
-GDWM_TEST_DIR      every execution appends "<stage> <scene>" to executions.log here
-GDWM_TEST_KILL     "stage:scene" (or "stage:step=N" for training) — SIGKILL the worker once (marker file)
-GDWM_TEST_FAIL     "stage:scene" — raise ValueError in that scene ("stage:seed=N": in that trial seed's execution;
-                   "reconstruct:setup": its actors' setup raises KeyError, as a missing environment variable does)
-GDWM_TEST_BLOCK    "stage" or "stage:step=N" — wait until GDWM_TEST_DIR/release exists (a test kills the driver)
-GDWM_TEST_HOG      "stage:scene" — fill memory until Ray's OOM killer ends the worker (up to 12 GB)
-GDWM_TEST_FILL     "stage:PATH" — the stage fills the disk of PATH: writes PATH until no space is left, and leaves it
-"""
+"""Test-only stages with the real pipeline's shape; behaviour injected through the GDWM_TEST_* environment
+variables ``tests/gdwm/inject.py`` lists (executions logged, a worker killed, a scene failed, a stage held, memory
+or disk filled)."""
 
 from __future__ import annotations
 
