@@ -552,6 +552,9 @@ def _run_pool(sd, subset, env: RunEnv, run_id, results, misses, keys, bases, don
                 _progress(env, s, "failed", message="out of memory")
             except ray.exceptions.RayTaskError as e:
                 if isinstance(e.cause, SetupFailed):  # the stage's own error: every scene would fail alike
+                    # the other actors' calls fail alike at once: they end before their actors are killed (a killed
+                    # actor's call in flight is one Ray would retry, and says so on the console)
+                    ray.wait(list(running), num_returns=len(running), timeout=30)
                     raise StageFailed(sd.name, {None: str(e.cause)}, setup=True) from None
                 errors[s] = _user_traceback(e)
                 _progress(env, s, "failed")
