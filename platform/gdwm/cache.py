@@ -52,6 +52,8 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.fs as pafs
 
+from gdwm.localdir import local_dir
+
 log = logging.getLogger(__name__)
 
 MANIFEST = "MANIFEST.json"
@@ -556,7 +558,7 @@ class Cache:
         m, d = manifest, self._dir(manifest.stage, manifest.key)
         if self.local:
             return Path(d)
-        dest = Path(os.environ.get("GDWM_LOCAL_CACHE") or Path.home() / ".cache" / "gdwm", m.stage, m.key)
+        dest = local_dir() / m.stage / m.key
         if (dest / MANIFEST).is_file() and (dest / MANIFEST).read_text() == m.to_json():
             return dest
         tmp = dest.parent / f".tmp-{m.key[:12]}-{uuid.uuid4().hex}"

@@ -13,10 +13,13 @@ on GPUs, so a GPU cluster may turn it off; on CPU the fixed thread count and see
 
 from __future__ import annotations
 
+import contextlib
+import importlib.abc
 import os
 import random
 import sys
-from collections.abc import Iterable
+from collections.abc import Callable
+from typing import Any
 
 CUBLAS_WORKSPACE = ":4096:8"
 """cuBLAS needs a fixed workspace for deterministic GEMMs; it reads the variable when CUDA initialises."""
@@ -37,29 +40,31 @@ def worker_env(deterministic: bool | None) -> dict[str, str]:
     return {} if deterministic is False else {"CUBLAS_WORKSPACE_CONFIG": CUBLAS_WORKSPACE}
 
 
-TORCH_LIBRARIES = frozenset({"torch", "transformers", "peft", "diffusers", "accelerate", "safetensors", "gsplat"})
-"""Distributions whose use means torch runs in the stage (``gdwm.fingerprint``'s libraries of its code)."""
-
-
-def uses_torch(libraries: Iterable[str] | None) -> bool:
-    """Whether a stage whose code fingerprint lists ``libraries`` (None: unknown) needs torch seeded: it imports torch
-    or a library built on it, or this process has torch already (an earlier task's state would carry over)."""
-    return libraries is None or bool(TORCH_LIBRARIES & set(libraries)) or "torch" in sys.modules
-
-
-def stage_start(seed: int, num_cpus: float, deterministic: bool | None, torch_used: bool = True) -> bool:
+def stage_start(seed: int, num_cpus: float, deterministic: bool | None) -> None:
     """Seed ``random``, numpy and torch from ``seed``; when deterministic (see ``resolve``), one fixed torch thread
-    count (the stage's CPU allotment, whatever Ray or an earlier task set) and deterministic CUDA kernels. Returns
-    whether determinism is on. ``torch_used=False`` (``uses_torch``: the stage's code imports no torch, and no task
-    of this process did) leaves torch unimported: seconds of a new worker's start that a light stage doesn't need."""
+    count (the stage's CPU allotment, whatever Ray or an earlier task set) and deterministic CUDA kernels.
+
+    A process that has not imported torch is not made to: torch is set up the moment the stage first imports it
+    (``_TorchOnImport``), so a stage that never uses torch (a light per-scene step, a file-writing toy) is spared
+    the seconds of its import in every new worker, and one that does sees exactly the state an early import would
+    have given it (the import itself draws nothing)."""
     random.seed(seed)
     import numpy as np
 
     np.random.seed(seed % 2**32)
-    if not torch_used and "torch" not in sys.modules:
-        return deterministic is not False
-    import torch
+    _TorchOnImport.remove()
+    if "torch" in sys.modules:
+        _torch_start(sys.modules["torch"], seed, num_cpus, deterministic)
+    else:
+        _TorchOnImport.install(lambda torch: _torch_start(torch, seed, num_cpus, deterministic))
 
+
+def stage_end() -> None:
+    """The stage is over: a later import of torch in this process is no longer its to set up."""
+    _TorchOnImport.remove()
+
+
+def _torch_start(torch, seed: int, num_cpus: float, deterministic: bool | None) -> None:
     torch.manual_seed(seed)
     on = resolve(deterministic)
     if on:
@@ -71,4 +76,58 @@ def stage_start(seed: int, num_cpus: float, deterministic: bool | None, torch_us
         torch.backends.cudnn.deterministic = True
     # warn_only: an op without a deterministic CUDA kernel warns (naming itself) instead of failing the stage
     torch.use_deterministic_algorithms(on, warn_only=True)
-    return on
+
+
+class _TorchOnImport(importlib.abc.MetaPathFinder):
+    """Runs a callback on the ``torch`` module right after its first import in this process, then leaves
+    ``sys.meta_path``. Written here because the standard library has no post-import hook: it finds torch's spec
+    with the other finders and wraps its loader for the one ``exec_module`` call."""
+
+    _installed: _TorchOnImport | None = None
+
+    def __init__(self, then: Callable[[Any], object]):
+        self.then = then
+
+    @classmethod
+    def install(cls, then: Callable[[Any], object]) -> None:
+        cls.remove()
+        cls._installed = cls(then)
+        sys.meta_path.insert(0, cls._installed)
+
+    @classmethod
+    def remove(cls) -> None:
+        if cls._installed is not None:
+            with contextlib.suppress(ValueError):
+                sys.meta_path.remove(cls._installed)
+            cls._installed = None
+
+    def find_spec(self, name, path=None, target=None):
+        if name != "torch":
+            return None
+        for finder in sys.meta_path:
+            if finder is self or not hasattr(finder, "find_spec"):
+                continue
+            spec = finder.find_spec(name, path, target)
+            if spec is not None and spec.loader is not None:
+                spec.loader = _ThenLoader(spec.loader, self)
+                return spec
+        return None
+
+
+class _ThenLoader(importlib.abc.Loader):
+    """torch's own loader for one ``exec_module``, then the callback (and the module keeps its real loader)."""
+
+    def __init__(self, loader: importlib.abc.Loader, hook: _TorchOnImport):
+        self.loader, self.hook = loader, hook
+
+    def create_module(self, spec):
+        return self.loader.create_module(spec)
+
+    def exec_module(self, module) -> None:
+        module.__loader__ = self.loader
+        if module.__spec__ is not None:
+            module.__spec__.loader = self.loader
+        self.loader.exec_module(module)
+        if _TorchOnImport._installed is self.hook:
+            _TorchOnImport.remove()
+            self.hook.then(module)

@@ -26,7 +26,7 @@ from typing import Any
 import ray
 
 from gdwm.cache import Cache, Manifest, cache_key
-from gdwm.determinism import stage_start, uses_torch
+from gdwm.determinism import stage_end, stage_start
 from gdwm.errors import oom_line
 from gdwm.fromenv import masked, restore
 from gdwm.keylock import KeyLock
@@ -304,9 +304,11 @@ def _execute(sd, key, base, subset, env, results, tracker, scene=None, state=Non
         out.mkdir()
         ctx = _context(sd, key, subset, env, results, out, tracker, scene, state)
         # whatever earlier tasks left in this worker's generators and thread count must not reach the output
-        libraries = (env.code.get(sd.name) or {}).get("libraries")
-        stage_start(ctx.seed or 0, ctx.resources.get("num_cpus", 1), env.deterministic, uses_torch(libraries))
-        extra = sd.fn(ctx) or {}
+        stage_start(ctx.seed or 0, ctx.resources.get("num_cpus", 1), env.deterministic)
+        try:
+            extra = sd.fn(ctx) or {}
+        finally:
+            stage_end()
         if not isinstance(extra, dict):
             raise TypeError(f"stage '{sd.name}' returned {type(extra).__name__}; return None or a JSON-able dict")
         tracker.flush()
@@ -408,6 +410,8 @@ class SceneWorker:
             # Kept, not raised: an actor whose constructor raises is dead, and Ray would restart and retry it as if
             # its node were lost. The stage's own error fails the stage once (process raises it).
             self.state, self.setup_error = None, traceback.format_exc()
+        finally:
+            stage_end()
 
     def process(self, scene: str, key: str, base: str, subset: dict, env: RunEnv, run_id: str, *results: StageResult):
         if self.setup_error is not None:

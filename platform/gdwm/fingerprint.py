@@ -43,6 +43,8 @@ from importlib.metadata import PackageNotFoundError, entry_points, packages_dist
 from pathlib import Path
 from typing import Any
 
+from gdwm.localdir import local_dir
+
 log = logging.getLogger(__name__)
 
 
@@ -212,8 +214,7 @@ class _FileCache:
 
     @staticmethod
     def path() -> Path:
-        root = os.environ.get("GDWM_LOCAL_CACHE") or Path.home() / ".cache" / "gdwm"
-        return Path(root) / f"fingerprints-py{sys.version_info[0]}{sys.version_info[1]}.json"
+        return local_dir() / f"fingerprints-py{sys.version_info[0]}{sys.version_info[1]}.json"
 
     def load(self) -> None:
         if self.loaded:

@@ -13,7 +13,6 @@ import time
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-import torch
 
 from gdwm.stage import StageContext, stage
 from tests.gdwm.inject import _block, _inject, _once, _record, _test_dir
@@ -53,6 +52,10 @@ def distill(ctx: StageContext) -> None:
 
 
 def _train_loop(s) -> None:
+    # torch is imported where a stage uses it: the driver and the per-scene workers, which never do, are spared its
+    # import (a second of CPU in each of a toy launch's processes)
+    import torch
+
     state = s.restore()
     start = state["step"] + 1 if state else 0
     # on s.device, as a real loop: fake GPUs (cluster=sim without CUDA) must give a device tensors can move to
@@ -72,6 +75,8 @@ def _train_loop(s) -> None:
 def _train_stage(ctx: StageContext, steps: int, target: float) -> None:
     _record(ctx)
     _inject(ctx)
+    import torch
+
     result = ctx.train(_train_loop, {"steps": steps, "target": target, "stage": ctx.name}, total_steps=steps)
     torch.save({"w": result.state["w"]}, ctx.out_dir / "weights.pt")
 
@@ -113,6 +118,8 @@ def score_toy(table: pa.Table, wanted=None) -> dict[str, float]:
 def evaluate_qa(ctx: StageContext) -> dict:
     _record(ctx)
     _inject(ctx)
+    import torch
+
     w = torch.load(ctx.upstream["lora"].path / "weights.pt", weights_only=True)["w"]
     acc = float(w.sum())
     table = pa.table({"sample_id": [f"s{i:02d}" for i in range(len(OFFSETS))], "value": [acc + o for o in OFFSETS]})
@@ -133,6 +140,8 @@ def diffusion(ctx: StageContext) -> None:
 def evaluate_gen(ctx: StageContext) -> dict:
     _record(ctx)
     _inject(ctx)
+    import torch
+
     w = torch.load(ctx.upstream["diffusion"].path / "weights.pt", weights_only=True)["w"]
     (ctx.out_dir / "metrics.json").write_text(json.dumps({"psnr": float(w.mean())}))
     return {"psnr": float(w.mean())}

@@ -38,6 +38,35 @@ def test_stage_start_resets_generators_and_threads_whatever_ran_before():
         torch.set_num_threads(threads)
 
 
+LAZY = """
+import json, sys
+from gdwm.determinism import stage_start, stage_end
+stage_start(7, 1, None)
+before = "torch" in sys.modules  # a stage that never imports torch does not pay for it
+import torch  # the stage imports it: set up then, as stage_start would have done
+out = [before, torch.rand(3).tolist(), torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()]
+stage_end()
+out.append([type(f).__name__ for f in sys.meta_path if type(f).__name__ == "_TorchOnImport"])
+print(json.dumps(out))
+"""
+
+
+def test_a_stage_that_imports_torch_late_gets_the_state_an_early_import_gives():
+    import json
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", LAZY], capture_output=True, text=True, timeout=120, check=True)
+    before, draws, threads, det, hooks = json.loads(r.stdout)
+    threads_now = torch.get_num_threads()
+    try:
+        stage_start(7, 1, None)  # torch imported here already
+        assert (before, draws, threads, det, hooks) == (False, torch.rand(3).tolist(), 1, True, [])
+    finally:
+        torch.use_deterministic_algorithms(False)
+        torch.set_num_threads(threads_now)
+
+
 def test_null_means_on_without_cuda_and_workers_get_the_cublas_workspace():
     assert resolve(None) is (not torch.cuda.is_available())
     assert resolve(True) is True and resolve(False) is False

@@ -22,6 +22,10 @@ def rec() -> dict:
     return environment()
 
 
+OTHER_CAP = "AVX2" if torch.backends.cpu.get_cpu_capability() != "AVX2" else "AVX512"
+"""A CPU capability this machine's is not: what another machine's record says."""
+
+
 def test_the_record_holds_what_the_issue_lists(rec):
     assert rec["python"]["version"] == ".".join(map(str, sys.version_info[:3]))
     assert rec["torch"]["version"] == torch.__version__ and rec["torch"]["git"] == torch.version.git_version
@@ -48,7 +52,7 @@ def test_the_digest_leaves_out_host_time_and_code_only(rec):
     other.update(host="elsewhere", recorded_at="2030-01-01T00:00:00+00:00", launch={"cwd": "/x"})
     other["gdwm"] = {"commit": "0" * 40, "dirty": True, "diff_sha256": "1" * 64}
     assert digest(other) == rec["digest"]
-    for path, value in ((("cpu", "capability"), "AVX512"), (("threads", "torch"), 64),
+    for path, value in ((("cpu", "capability"), OTHER_CAP), (("threads", "torch"), 64),
                         (("distributions", "numpy"), "0.0.1")):  # fmt: skip
         changed = copy.deepcopy(rec)
         changed[path[0]][path[1]] = value
@@ -57,7 +61,7 @@ def test_the_digest_leaves_out_host_time_and_code_only(rec):
 
 def test_differences_in_words(rec):
     b = copy.deepcopy(rec)
-    b["cpu"]["capability"] = "AVX512"
+    b["cpu"]["capability"] = OTHER_CAP
     b["distributions"]["toylib"] = "2.0"
     b["distributions"].pop("scipy")
     b["threads"]["OMP_NUM_THREADS"] = "4"
@@ -65,7 +69,7 @@ def test_differences_in_words(rec):
     lines = differences(rec, b)
     assert lines == [
         f"gdwm {commit_tag(rec)} -> {'f' * 12}",
-        f"CPU capability {rec['cpu']['capability']} -> AVX512",
+        f"CPU capability {rec['cpu']['capability']} -> {OTHER_CAP}",
         f"OMP_NUM_THREADS {rec['threads'].get('OMP_NUM_THREADS', 'unset')} -> 4",
         f"scipy {rec['distributions']['scipy']} -> absent",
         "toylib absent -> 2.0",
@@ -107,7 +111,7 @@ def store(tmp_path_factory, rec):
     root = tmp_path_factory.mktemp("envstore")
     backend = TrackingBackend(f"sqlite:///{root}/mlflow.db", "gdwm", str(root / "art"))
     other = copy.deepcopy(rec)
-    other["cpu"]["capability"] = "AVX512"
+    other["cpu"]["capability"] = OTHER_CAP
     other["distributions"]["toylib"] = "2.0"
     other["digest"] = digest(other)
     runs = {}
@@ -134,7 +138,7 @@ def test_compare_notes_rows_from_other_environments(store, rec):
     assert note == (
         "Environments differ between rows (numbers may move by float rounding across CPUs and library versions): "
         f"A, B: environment {rec['digest']} ({summary(rec)}); C: environment {other['digest']}, which differs from "
-        f"{rec['digest']} in: CPU capability {cap} -> AVX512; toylib absent -> 2.0; D: no environment recorded "
+        f"{rec['digest']} in: CPU capability {cap} -> {OTHER_CAP}; toylib absent -> 2.0; D: no environment recorded "
         "(an older gdwm)."
     )
     assert backend.client.get_run(runs["there"]).data.tags[RECORD_RUN_TAG] == runs["there"]
@@ -147,8 +151,33 @@ def test_regress_flags_a_baseline_from_another_environment(store, rec):
     [flag] = baseline_flags(backend, runs["there"], rec)
     assert flag == (
         f"baseline run {runs['there'][:12]} ran in another environment ({other['digest']} -> {rec['digest']}: CPU "
-        f"capability AVX512 -> {rec['cpu']['capability']}; toylib 2.0 -> absent): float rounding may move its numbers; "
-        "re-record it here with --set-baseline"
+        f"capability {OTHER_CAP} -> {rec['cpu']['capability']}; toylib 2.0 -> absent): float rounding may move its "
+        "numbers; re-record it here with --set-baseline"
     )
     [old] = baseline_flags(backend, runs["old"], rec)
     assert old.startswith(f"baseline run {runs['old'][:12]} recorded no environment (an older gdwm)")
+
+
+RECORD = "import json, sys; from gdwm.environment.record import environment; r = environment(); " \
+         "print(json.dumps([r['digest'], r['torch'], r['threads'], 'torch' in sys.modules]))"  # fmt: skip
+
+
+def test_a_process_without_torch_reads_its_facts_from_the_last_computation(tmp_path, rec):
+    import json
+
+    env = {**__import__("os").environ, "GDWM_LOCAL_CACHE": str(tmp_path)}
+
+    def record() -> list:
+        r = subprocess.run([sys.executable, "-c", RECORD], capture_output=True, text=True, env=env, timeout=120)
+        assert r.returncode == 0, r.stderr
+        return json.loads(r.stdout)
+
+    first = record()  # computed: torch imported, the facts written for this install
+    (written,) = (tmp_path / "environment").glob("torch-*.json")
+    second = record()
+    assert first[3] is True and second[3] is False  # the second process never imported torch
+    assert second[:3] == first[:3] == [rec["digest"], rec["torch"], rec["threads"]]
+    assert json.loads(written.read_text())["torch"]["config"] == torch.__config__.show()
+    env["OMP_NUM_THREADS"] = "1"  # what sets torch's threads is part of the file's name: computed again
+    assert record()[2] == {"torch": 1, "torch_interop": rec["threads"]["torch_interop"], "OMP_NUM_THREADS": "1"}
+    assert len(list((tmp_path / "environment").glob("torch-*.json"))) == 2

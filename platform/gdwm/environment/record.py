@@ -13,9 +13,12 @@ fingerprint), and a README edit must not make every later run "another environme
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import functools
 import hashlib
+import importlib.metadata
+import importlib.util
 import json
 import os
 import platform
@@ -23,10 +26,12 @@ import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
 from gdwm.environment.lock import drift, installed, read_lock, venv_lock
+from gdwm.localdir import local_dir
 
 SCHEMA = 1
 COMMIT_ENV = "GDWM_COMMIT"
@@ -39,8 +44,7 @@ UNDIGESTED = ("digest", "recorded_at", "host", "gdwm", "lock", "kernel", "launch
 
 def collect() -> dict[str, Any]:
     """This process's environment (``environment()`` keeps it for the process)."""
-    import torch
-
+    facts = torch_facts()
     rec: dict[str, Any] = {
         "schema": SCHEMA,
         "recorded_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
@@ -52,23 +56,11 @@ def collect() -> dict[str, Any]:
         "cpu": {
             "model": cpu_model(),
             "logical": os.cpu_count(),
-            "usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
-            "capability": torch.backends.cpu.get_cpu_capability(),
+            "usable": len(_usable_cpus()),
+            "capability": facts["capability"],
         },
-        "threads": {
-            "torch": torch.get_num_threads(),
-            "torch_interop": torch.get_num_interop_threads(),
-            **{v: os.environ[v] for v in THREAD_VARS if v in os.environ},
-        },
-        "torch": {
-            "version": torch.__version__,
-            "git": torch.version.git_version,
-            "cuda": torch.version.cuda,
-            "cudnn": torch.backends.cudnn.version() if torch.backends.cudnn.is_available() else None,
-            "debug": torch.version.debug,
-            # BLAS/LAPACK/oneDNN versions and build flags: what one version number does not say
-            "config": torch.__config__.show(),
-        },
+        "threads": {**facts["threads"], **{v: os.environ[v] for v in THREAD_VARS if v in os.environ}},
+        "torch": facts["torch"],
         "gpu": gpus(),
         "distributions": {},
         "editable": [],
@@ -95,6 +87,66 @@ def digest(rec: dict[str, Any]) -> str:
 
 
 # ---- the parts -------------------------------------------------------------------------------------------------
+def _usable_cpus() -> list[int]:
+    return sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else list(range(os.cpu_count() or 1))
+
+
+def torch_facts() -> dict[str, Any]:
+    """torch's build, its thread counts and the CPU kernels it picks. A process without torch imported reads them
+    from the file written when they were last computed for this very install (torch's files and version, this
+    Python, the variables that set thread counts, the CPUs this process may use): a launch's driver uses no torch,
+    and importing it only for this is about 2 s of CPU at every launch."""
+    if "torch" in sys.modules:  # this process's own, as they are now (a stage may have set its thread count)
+        return _torch_facts(sys.modules["torch"])
+    key = _torch_install_key()
+    path = local_dir() / "environment" / f"torch-{key}.json" if key else None
+    if path is not None:
+        with contextlib.suppress(OSError, ValueError):
+            return json.loads(path.read_text())
+    import torch
+
+    facts = _torch_facts(torch)
+    if path is not None:
+        with contextlib.suppress(OSError):  # best effort, atomic: a concurrent writer writes the same
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=".torch-", dir=path.parent)
+            with os.fdopen(fd, "w") as f:
+                json.dump(facts, f)
+            os.replace(tmp, path)
+    return facts
+
+
+def _torch_facts(torch) -> dict[str, Any]:
+    return {
+        "capability": torch.backends.cpu.get_cpu_capability(),
+        "threads": {"torch": torch.get_num_threads(), "torch_interop": torch.get_num_interop_threads()},
+        "torch": {
+            "version": torch.__version__,
+            "git": torch.version.git_version,
+            "cuda": torch.version.cuda,
+            "cudnn": torch.backends.cudnn.version() if torch.backends.cudnn.is_available() else None,
+            "debug": torch.version.debug,
+            # BLAS/LAPACK/oneDNN versions and build flags: what one version number does not say
+            "config": torch.__config__.show(),
+        },
+    }
+
+
+def _torch_install_key() -> str | None:
+    """What torch's facts depend on, hashed; None where torch is not installed as files (then it is imported)."""
+    spec = importlib.util.find_spec("torch")
+    if spec is None or not spec.origin or not os.path.isfile(spec.origin):
+        return None
+    root = Path(spec.origin).parent
+    parts: list[Any] = [sys.executable, sys.version, importlib.metadata.version("torch"), _usable_cpus(), cpu_model()]
+    for name in ("__init__.py", "version.py", "lib"):
+        with contextlib.suppress(OSError):
+            st = (root / name).stat()
+            parts.append([name, st.st_size, st.st_mtime_ns, st.st_ino])
+    parts.append({v: os.environ.get(v) for v in (*THREAD_VARS, "OMP_DYNAMIC", "MKL_DYNAMIC")})
+    return hashlib.sha256(json.dumps(parts, default=str).encode()).hexdigest()[:16]
+
+
 def source_root() -> Path:
     """The checkout gdwm runs from (platform/gdwm/.. /..): a git work tree, or an installed wheel's site-packages."""
     return Path(__file__).resolve().parents[3]

@@ -22,6 +22,7 @@ import tempfile
 from pathlib import Path
 
 from gdwm.config import sqlite_path
+from gdwm.localdir import local_dir
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +39,7 @@ def _umask_mode() -> int:
 
 
 def template_dir() -> Path:
-    return Path(os.environ.get("GDWM_LOCAL_CACHE") or Path.home() / ".cache" / "gdwm") / "mlflow-schema"
+    return local_dir() / "mlflow-schema"
 
 
 def _template() -> Path:
