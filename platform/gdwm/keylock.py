@@ -123,12 +123,22 @@ class KeyLock:
         return not -STALE_S < time.time() - beat <= STALE_S  # not renewed, or a beat from the future
 
     def _renew(self) -> None:
+        """Renew every ``BEAT_S``. A renewal that fails (a full disk, a lost mount) leaves the holder computing; it is
+        a warning only once the claim is half way to stale, when another driver may soon take the key over: a
+        shorter outage is the cause some other line reports already (the stage that could not publish, the store
+        that could not be written), and saying it again every beat would bury that line."""
+        renewed, warned = time.monotonic(), False
         while not self._stop.wait(BEAT_S):
             try:
                 self._write()
-            except OSError as e:  # a full disk, a lost mount: the holder keeps computing, others may take over
-                log.warning("%s", self.cache._store_error(e, f"lock {self.where}: could not renew the claim in cache "
-                                                              f"{self.cache.uri}"))  # fmt: skip
+                renewed, warned = time.monotonic(), False
+            except OSError as e:
+                msg = self.cache._store_error(
+                    e, f"lock {self.where}: could not renew the claim in cache {self.cache.uri}"
+                )
+                late = time.monotonic() - renewed >= STALE_S / 2
+                log.log(logging.WARNING if late and not warned else logging.INFO, "%s", msg)
+                warned |= late
 
     # ---- acquire / release -------------------------------------------------------------------------------------
     def acquire(self) -> None:

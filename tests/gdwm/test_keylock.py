@@ -174,3 +174,43 @@ def test_a_held_store_lock_names_its_holder_and_is_given_up_after_the_timeout(tm
         f"{holder} after 3 s; stop that process if it hangs, or raise tracking.lock_timeout_s"
     )
     assert took < 60
+
+
+def test_a_renewal_that_keeps_failing_warns_once_half_way_to_stale(tmp_path, monkeypatch, caplog):
+    """A full disk under a holder: each failed renewal is an info line, one warning once the claim is half way to
+    stale (another driver may take the key over), not a line per beat repeating the cause the run reports."""
+    import logging
+
+    monkeypatch.setattr(keylock, "BEAT_S", 0.01)
+    monkeypatch.setattr(keylock, "STALE_S", 0.4)
+    records: list[logging.LogRecord] = []
+    enough = threading.Event()
+
+    class Collect(logging.Handler):
+        def emit(self, record):
+            records.append(record)
+            if sum(r.levelno == logging.WARNING for r in records) and len(records) >= 40:
+                enough.set()
+
+    handler = Collect(logging.INFO)
+    caplog.set_level(logging.INFO, logger=keylock.log.name)
+    keylock.log.addHandler(handler)
+    try:
+        lock = KeyLock(Cache(tmp_path), "lora", KEY)
+        with lock:
+
+            def full() -> None:
+                raise OSError(28, "No space left on device")
+
+            start = time.monotonic()
+            monkeypatch.setattr(lock, "_write", full)
+            assert enough.wait(30)
+            took = time.monotonic() - start
+    finally:
+        keylock.log.removeHandler(handler)
+    levels = [r.levelno for r in records]
+    assert levels.count(logging.WARNING) == 1 and took >= 0.2
+    first = levels.index(logging.WARNING)
+    assert set(levels[:first]) == {logging.INFO} and first >= 5  # the beats before it: info only
+    assert all(f"lock lora {KEY[:12]}: could not renew the claim in cache" in r.getMessage() for r in records)
+    assert "No space left on device" in records[first].getMessage()

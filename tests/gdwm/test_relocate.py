@@ -71,10 +71,11 @@ def test_a_server_store_keeps_its_uris():
 
 def test_params_carry_paths_relative_to_the_workdir():
     params = {"workdir": "/data/w", "cache.uri": "/data/w/cache", "tracking.uri": "sqlite:////data/w/mlflow.db",
-              "data.root": "/data/ds", "note": "a /slash inside text", "lr": "0.1"}  # fmt: skip
+              "data.root": "/data/ds", "note": "a /slash inside text", "lr": "0.1",
+              "other.uri": "file:///data/c?token=***"}  # fmt: skip
     assert relative_paths(params, "/data/w") == {
         "workdir": ".", "cache.uri": "cache", "tracking.uri": "sqlite:///mlflow.db", "data.root": "../ds",
-        "note": "a /slash inside text", "lr": "0.1"}  # fmt: skip
+        "note": "a /slash inside text", "lr": "0.1", "other.uri": "file:///data/c?token=***"}  # fmt: skip
 
 
 def test_a_store_configured_with_a_quoted_file_uri_follows_the_copy(tmp_path):

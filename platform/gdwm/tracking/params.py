@@ -70,12 +70,15 @@ def flatten_params(cfg: Mapping | DictConfig, prefix: str = "") -> dict[str, str
 def relative_paths(params: Mapping[str, str], root: str | Path) -> dict[str, str]:
     """Flattened params with every absolute path (plain, ``file://`` or ``sqlite:///``) written relative to ``root``
     (the workdir): a run's params describe the experiment, not the machine or folder it ran in, and stay true for a
-    copied workdir."""
+    copied workdir. A URI with a query or fragment (``file:///c?token=...``) is left whole: its path is not a file's
+    alone, and no relative form of it is a URI."""
     root = os.path.abspath(root)
     out = {}
     for k, v in params.items():
         for scheme in ("sqlite:///", "file://", ""):
             path = v.removeprefix(scheme) if v.startswith(scheme) else None
+            if scheme and path is not None and ("?" in path or "#" in path):
+                break
             if path is not None and path.startswith("/") and "\n" not in path and " " not in path:
                 v = scheme + os.path.relpath(path, root)
                 break
