@@ -75,10 +75,13 @@ def _train_loop(s) -> None:
 def _train_stage(ctx: StageContext, steps: int, target: float) -> None:
     _record(ctx)
     _inject(ctx)
-    import torch
-
     result = ctx.train(_train_loop, {"steps": steps, "target": target, "stage": ctx.name}, total_steps=steps)
-    torch.save({"w": result.state["w"]}, ctx.out_dir / "weights.pt")
+    # as numpy: the evaluations read it without importing torch in their workers
+    np.save(ctx.out_dir / WEIGHTS, result.state["w"].numpy())
+
+
+WEIGHTS = "weights.npy"
+"""A toy training stage's output: its final ``w`` (float32, 4 values)."""
 
 
 def seed_noise(seed: int) -> float:
@@ -118,9 +121,7 @@ def score_toy(table: pa.Table, wanted=None) -> dict[str, float]:
 def evaluate_qa(ctx: StageContext) -> dict:
     _record(ctx)
     _inject(ctx)
-    import torch
-
-    w = torch.load(ctx.upstream["lora"].path / "weights.pt", weights_only=True)["w"]
+    w = np.load(ctx.upstream["lora"].path / WEIGHTS)
     acc = float(w.sum())
     table = pa.table({"sample_id": [f"s{i:02d}" for i in range(len(OFFSETS))], "value": [acc + o for o in OFFSETS]})
     pq.write_table(table, ctx.out_dir / "predictions.parquet")
@@ -140,9 +141,7 @@ def diffusion(ctx: StageContext) -> None:
 def evaluate_gen(ctx: StageContext) -> dict:
     _record(ctx)
     _inject(ctx)
-    import torch
-
-    w = torch.load(ctx.upstream["diffusion"].path / "weights.pt", weights_only=True)["w"]
+    w = np.load(ctx.upstream["diffusion"].path / WEIGHTS)
     (ctx.out_dir / "metrics.json").write_text(json.dumps({"psnr": float(w.mean())}))
     return {"psnr": float(w.mean())}
 

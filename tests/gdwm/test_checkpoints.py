@@ -306,7 +306,7 @@ def test_recompute_after_a_corrupted_checkpoint_publishes_a_clean_runs_weights(t
     _gdwm_run(tmp_path)
     cache = Cache(tmp_path / "w" / "cache")
     (clean,) = cache.entries("tokenizer")
-    clean_weights = (cache.materialize(clean) / "weights.pt").read_bytes()
+    clean_weights = (cache.materialize(clean) / "weights.npy").read_bytes()
     steps = tmp_path / "w" / "checkpoints" / "tokenizer" / clean.key / "steps"
     assert sorted(p.name for p in steps.iterdir()) == [f"step_{i:09d}" for i in range(4)]
     # the entry is gone (deleted by hand, or never published), its checkpoints are not; the newest is corrupt
@@ -319,7 +319,7 @@ def test_recompute_after_a_corrupted_checkpoint_publishes_a_clean_runs_weights(t
     assert f"discarded checkpoint {steps / 'step_000000003'}: state.pt: sha256 " in r.stderr
     (again,) = cache.entries("tokenizer")
     assert again.key == clean.key and again.files == clean.files  # the same bytes as the clean run published
-    assert (cache.materialize(again) / "weights.pt").read_bytes() == clean_weights
+    assert (cache.materialize(again) / "weights.npy").read_bytes() == clean_weights
     # retrained step 3 only, from step 2's checkpoint; the discarded one is named in the stage's MLflow run
     client = mlflow.MlflowClient(f"sqlite:///{(tmp_path / 'w').resolve()}/mlflow.db")
     first, run = _tokenizer_runs(tmp_path)  # the recompute has its own run, linked to the first
@@ -334,13 +334,13 @@ def test_recompute_after_a_corrupted_checkpoint_publishes_a_clean_runs_weights(t
     # The executor discards a key's checkpoints before it recomputes the entry: after a corrupt entry (its
     # checkpoints, intact or not, may be what produced it) and when forced (cache.reuse=none means train again,
     # not resume at the last step). Either way training starts at step 0 and publishes the same bytes.
-    _flip(cache.materialize(again) / "weights.pt")  # the entry is corrupt, its checkpoints intact
+    _flip(cache.materialize(again) / "weights.npy")  # the entry is corrupt, its checkpoints intact
     (tmp_path / "executions.log").write_text("")
     _gdwm_run(tmp_path)
     assert [line.split()[0] for line in (tmp_path / "executions.log").read_text().splitlines()] == ["tokenizer"]
     assert _starts(tmp_path) == [[0, 0, 0, 0], [3], [0, 0, 0, 0]]  # a third run, from step 0: nothing resumed
-    assert (cache.materialize(cache.lookup("tokenizer", clean.key)) / "weights.pt").read_bytes() == clean_weights
+    assert (cache.materialize(cache.lookup("tokenizer", clean.key)) / "weights.npy").read_bytes() == clean_weights
     assert sorted(p.name for p in steps.iterdir()) == [f"step_{i:09d}" for i in range(4)]
     _gdwm_run(tmp_path, "cache.reuse=none")
     assert _starts(tmp_path) == [[0, 0, 0, 0], [3], [0, 0, 0, 0], [0, 0, 0, 0]]
-    assert (cache.materialize(cache.lookup("tokenizer", clean.key)) / "weights.pt").read_bytes() == clean_weights
+    assert (cache.materialize(cache.lookup("tokenizer", clean.key)) / "weights.npy").read_bytes() == clean_weights

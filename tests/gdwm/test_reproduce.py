@@ -108,7 +108,7 @@ def test_a_library_change_names_the_library_and_the_metrics_it_moved(recorded):
     assert metrics["nuinstruct/mae"]["verdict"].startswith("differs by ")
     entries = {e["stage"]: e["verdict"] for e in _rows(report, "entries")}
     assert entries["reconstruct"] == entries["tokenizer"] == "equal (1 file)"
-    assert entries["lora"] == "bytes differ (weights.pt); key differs: library toylib 1.0 -> 2.0"
+    assert entries["lora"] == "bytes differ (weights.npy); key differs: library toylib 1.0 -> 2.0"
     assert entries["evaluate_qa"] == "bytes differ (metrics.json, predictions.parquet); key differs: upstream: lora"
     assert report["trials"][0]["environment"] == ["toylib 1.0 -> 2.0"]
     assert "environment differences (recorded -> now):\n  toylib 1.0 -> 2.0" in r.stdout
