@@ -184,8 +184,8 @@ def test_seeds_share_seed_free_stages_and_aggregate_per_row(tmp_path):
     # rank 4, 3 steps, 4 dims: acc = 12 * (4 + noise(seed))
     acc = [12 * (4 + seed_noise(s)) for s in (0, 1, 2)]
     m = rows["rank 4"].data.metrics
-    assert m["acc"] == pytest.approx(sum(acc) / 3) and m["n/acc"] == 3.0
-    assert m["std/acc"] == pytest.approx(statistics.stdev(acc))
+    assert m["acc"] == pytest.approx(sum(acc) / 3) and rows["rank 4"].data.tags["gdwm.n.acc"] == "3"
+    assert m["acc/std"] == pytest.approx(statistics.stdev(acc))
     per_seed = {t.data.tags["gdwm.seed"]: t.data.metrics["acc"] for t in trials if t.data.tags["gdwm.row"] == "rank 4"}
     assert per_seed == pytest.approx({"0": acc[0], "1": acc[1], "2": acc[2]})
     assert {t.data.tags["mlflow.parentRunId"] for t in trials if t.data.tags["gdwm.row"] == "rank 4"} == {
