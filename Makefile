@@ -57,11 +57,15 @@ define run_pytest
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing on purpose"; exit 1; fi; exit $$rc
 endef
 
-test: setup ## run the test suite (everything but `slow`) on local Ray with 2 CPUs
-	$(call run_pytest,)
+# Every test, on both cores of the 2-core box the suite is sized for: pytest-xdist workers take whole files (and files
+# sharing a session fixture together), the longest first (tests/conftest.py). TEST_WORKERS=1 runs them one by one.
+TEST_WORKERS ?= 2
+XDIST = $(if $(filter-out 0 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadgroup --no-loadscope-reorder,-p no:xdist)
 
-test-all: setup ## run every test, `slow` included
-	$(call run_pytest,-m "slow or not slow")
+test: setup ## run every test (the long end-to-end ones too) on local Ray, 2 pytest workers
+	$(call run_pytest,$(XDIST))
+
+test-all: test ## the same as make test (there is no other tier)
 
 bench: setup ## run benchmarks/ and print side-by-side ratios
 	$(PY) -m benchmarks

@@ -443,7 +443,9 @@ def _signed(v: float) -> str:
 def print_rows(bench: BenchmarkConfig, rows: list[Row], base_run: dict | None, seeds: list[int]) -> None:
     where = f"baseline run {base_run['run_id'][:12]}" if base_run else "no baseline yet (--set-baseline records one)"
     mean = f", mean of seeds {seeds}" if len(seeds) > 1 else ""
-    t = Table(title=f"regression '{bench.name}' vs {where}{mean}", header_style="bold")
+    # a line of its own, not the table's title: a title wraps to the table's width and splits what a log is grepped for
+    console.print(f"regression '{bench.name}' vs {where}{mean}", markup=False)
+    t = Table(header_style="bold")
     for col in ("metric", "baseline", "now", "delta", "tolerance", "verdict"):
         t.add_column(col)
     style = {"REGRESSION": "red", "missing": "red", "no spread": "red", "untestable": "red", "improved": "green"}

@@ -23,6 +23,8 @@ from gdwm.housekeeping import Limits, gc, scan
 from tests.gdwm.servers import BUCKET, SECRET, Moto
 from tests.gdwm.test_run import ALL, Toy, _ok
 
+pytestmark = pytest.mark.heavy(1.5)
+
 WRONG_SECRET = "a-wrong-secret-that-must-never-be-printed"
 CONFIG = {"lora": {"rank": 8, "alpha": 16.0}, "lr": 0.1}
 UPSTREAM = {"tokenizer": "a" * 64}
@@ -289,7 +291,6 @@ def test_gc_on_s3_deletes_unprotected_entries(s3, tmp_path):
 # --- end to end -------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.slow  # two toy runs on local Ray
 def test_gdwm_run_on_s3_then_a_rerun_is_all_cache_hits(s3, tmp_path):
     toy = Toy(tmp_path)
     # RAY_ADDRESS=local: a `ray start` cluster elsewhere on this machine must not capture the run
@@ -305,7 +306,6 @@ def test_gdwm_run_on_s3_then_a_rerun_is_all_cache_hits(s3, tmp_path):
     assert "all 11 stage outputs cached and verified; nothing to run" in r.stdout
 
 
-@pytest.mark.slow  # a toy run on local Ray with the S3 server stopped mid-stage: ~1 min
 def test_endpoint_down_inside_a_gdwm_run_fails_the_stage_naming_the_cache(s3, tmp_path):
     """The store goes away while reconstruct computes: its scenes cannot be published, the run exits 1 naming the
     cache URI, no entry of the stage is visible once the store is back, and the next run computes them."""

@@ -7,7 +7,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 from omegaconf import OmegaConf
 
 from gdwm.capacity import GPU_SPEEDUP, Duration, Node, cluster_nodes, plan_capacity, shape_errors, stage_durations
@@ -97,7 +96,6 @@ def test_durations_come_from_the_clusters_own_runs_else_scaled_from_others():
     assert d["llm"] == Duration(64.0, "scaled from other clusters' runs")  # asks no GPU: not sped up
 
 
-@pytest.mark.slow  # the CLI around the plan tested above (~20 s: composes the 5 rows x 3 seeds)
 def test_sweep_dry_run_prints_the_capacity_plan_from_a_durations_file(tmp_path):
     f = tmp_path / "d.json"
     f.write_text('{"reconstruct": 120, "llm": 60, "distill": 90, "tokenizer": 300, "lora": 600, "evaluate_qa": 30}')

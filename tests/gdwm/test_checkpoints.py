@@ -32,6 +32,8 @@ from gdwm.training import (
 )
 from tests.gdwm.toydata import make_dataset
 
+pytestmark = pytest.mark.heavy(2)
+
 REPO = Path(__file__).resolve().parents[2]
 KEY = "a" * 64
 OTHER = "b" * 64
@@ -300,7 +302,6 @@ def _starts(root: Path) -> list[list[float]]:
     return [sorted(m.value for m in client.get_metric_history(r.info.run_id, "start")) for r in _tokenizer_runs(root)]
 
 
-@pytest.mark.slow  # make test-all: two real training runs (keeps `make test` near 20 minutes on 2 cores)
 def test_recompute_after_a_corrupted_checkpoint_publishes_a_clean_runs_weights(tmp_path):
     make_dataset(tmp_path / "ds")
     _gdwm_run(tmp_path)

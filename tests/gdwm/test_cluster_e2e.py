@@ -18,6 +18,8 @@ from tests.gdwm.test_cluster_sim import SIM, _placement
 from tests.gdwm.test_run import Toy, _ok
 from tests.gdwm.test_sweep import _sweep
 
+pytestmark = pytest.mark.heavy(3.5)
+
 STAGES = ("reconstruct", "distill", "tokenizer", "lora", "evaluate_qa")
 
 
@@ -26,7 +28,6 @@ def _entries(cache: Cache) -> dict[str, list]:
     return {s: sorted((m.key, m.scene, m.files) for m in cache.entries(s)) for s in STAGES}
 
 
-@pytest.mark.slow  # a toy sweep on a 2-node sim cluster plus the same sweep on local Ray: ~5 min on 2 idle cores
 @pytest.mark.timeout(1500)
 def test_toy_sweep_on_sim_with_s3_and_an_auth_server_equals_the_local_sweep(tmp_path, monkeypatch):
     moto = Moto()

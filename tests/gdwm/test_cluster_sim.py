@@ -22,6 +22,8 @@ from gdwm.cache import Cache
 from tests.gdwm.servers import free_port
 from tests.gdwm.test_run import REPO, Toy, _ok
 
+pytestmark = pytest.mark.heavy(2.5)
+
 SIM = ["cluster=sim", "run.live=false"]
 
 
@@ -103,7 +105,6 @@ def _placement(stdout: str) -> dict[str, dict[str, int]]:
     return out
 
 
-@pytest.mark.slow  # two toy runs (sim and local) up to the tokenizer, ~3 min on 2 cores
 def test_toy_run_on_sim_uses_both_nodes_and_matches_local(tmp_path):
     sim, local = Toy(tmp_path / "sim"), Toy(tmp_path / "local")
     r = subprocess.run(sim.args("targets=[tokenizer]", *SIM), env=sim.env(), capture_output=True, text=True,
@@ -141,7 +142,6 @@ def test_sim_yaml_nodes_follow_the_sim_shape():
     assert REPO.joinpath("conf/cluster/sim.yaml").is_file()
 
 
-@pytest.mark.slow  # a sim cluster brought up and torn down by a terminated driver, ~45 s on 2 cores
 def test_sigterm_stops_the_sim_cluster(tmp_path):
     toy = Toy(tmp_path)
     proc = subprocess.Popen(toy.args(*SIM), env=toy.env(GDWM_TEST_BLOCK="distill"), stdout=subprocess.PIPE,

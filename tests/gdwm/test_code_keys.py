@@ -24,6 +24,8 @@ from gdwm import fingerprint
 from gdwm.cache import Cache
 from tests.gdwm.toydata import make_dataset
 
+pytestmark = pytest.mark.heavy(2)
+
 REPO = Path(__file__).resolve().parents[2]
 
 COMMON = '''
@@ -255,7 +257,6 @@ def test_pipeline_stages_fingerprint_their_own_code_and_libraries():
 
 
 # ---- end to end through the CLI -----------------------------------------------------------------------------------
-@pytest.mark.slow  # make test-all: the plug fixture's runs (~50 s); the fingerprint unit tests stay
 def test_the_manifest_and_the_stage_run_record_the_fingerprint(plug):
     cache = Cache(plug.work / "cache")
     [m] = cache.entries("lora")
@@ -269,7 +270,6 @@ def test_the_manifest_and_the_stage_run_record_the_fingerprint(plug):
     assert code == m.code
 
 
-@pytest.mark.slow  # make test-all: the plug fixture's runs
 def test_a_comment_docstring_or_reformat_reruns_nothing(plug):
     plug.edit("lora_math", "# the rank scales the weight", "# the rank, times ten")
     plug.edit("lora_math", '"""The LoRA\'s arithmetic: imported by the lora stage only."""', '"""Arithmetic."""')
@@ -279,7 +279,6 @@ def test_a_comment_docstring_or_reformat_reruns_nothing(plug):
     assert "all 6 stage outputs cached and verified" in r.stdout
 
 
-@pytest.mark.slow  # make test-all: the plug fixture's runs and a rerun
 def test_a_function_body_edit_reruns_lora_and_descendants_only(plug):
     plug.edit("lora_math", "10.0", "20.0")
     dry = plug.gdwm("run", "--dry-run")
@@ -295,7 +294,6 @@ def test_a_function_body_edit_reruns_lora_and_descendants_only(plug):
     assert len(cache.entries("lora")) == 2 and len(cache.entries("prep")) == 3  # the old code's entry is kept
 
 
-@pytest.mark.slow  # make test-all: two more runs
 def test_a_library_version_reruns_the_stages_that_declare_it(plug):
     plug.library("2.0")
     dry = plug.gdwm("run", "--dry-run")
@@ -304,7 +302,6 @@ def test_a_library_version_reruns_the_stages_that_declare_it(plug):
     assert plug.executions() == {"lora": 1, "evaluate": 1}
 
 
-@pytest.mark.slow  # make test-all: two more runs
 def test_cache_reuse_all_takes_old_code_and_the_plan_says_so(plug):
     plug.edit("lora_math", "20.0", "30.0")
     dry = plug.gdwm("run", "--dry-run", "cache.reuse=all")
@@ -318,7 +315,6 @@ def test_cache_reuse_all_takes_old_code_and_the_plan_says_so(plug):
     assert "cache.reuse_stages: no stage 'lroa' in pipeline 'codeplug'" in bad.stderr
 
 
-@pytest.mark.slow  # make test-all: a baseline and a regression run; tests/gdwm/test_regress covers regress itself
 def test_regress_recomputes_changed_code_and_catches_a_planted_regression(plug):
     r = plug.gdwm("regress", "benchmark=codeplug", "--set-baseline")
     assert r.returncode == 0, r.stdout + r.stderr

@@ -1,7 +1,7 @@
 """Two `gdwm run` drivers on one workdir at once (fresh and existing store, identical and different configs):
 both exit 0, every stage key executes once, one MLflow stage run per key.
 
-Each driver is the real CLI with its own local Ray (token auth on), so these take minutes: make test-all.
+Each driver is the real CLI with its own local Ray (token auth on).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import pytest
 
 from tests.gdwm.test_run import Toy
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.heavy(2)
 
 
 def _together(toy: Toy, *configs: tuple[str, ...]) -> list[subprocess.CompletedProcess]:

@@ -151,8 +151,7 @@ def test_params_must_match_the_request(tmp_path):
 
 
 # ---- gdwm run ----------------------------------------------------------------------------------------------------
-# make test-all: the unit tests above show the edit changes the fingerprint, which every stage key holds
-@pytest.mark.slow
+# the unit tests above show the edit changes the fingerprint, which every stage key holds; this is the real run
 def test_edited_table_reruns_the_stages_that_read_the_data(tmp_path):
     toy = Toy(tmp_path)
     _ok(toy.run("targets=[distill]"))

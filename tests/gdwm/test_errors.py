@@ -20,6 +20,8 @@ from gdwm.tracking import open_tracking
 from gdwm.tracking.backend import TrackingError
 from tests.gdwm.test_run import Toy
 
+pytestmark = pytest.mark.heavy(1.5)
+
 
 @ray.remote
 def _fails():
@@ -72,7 +74,6 @@ def test_a_config_group_set_to_null_is_exit_2_naming_it(tmp_path):
     assert r.stderr.strip() == want
 
 
-@pytest.mark.slow  # a real run; the test above checks the same message in-process
 def test_a_store_that_cannot_be_opened_is_one_line_exit_1(tmp_path):
     toy = Toy(tmp_path)
     r = toy.run("tracking.uri=sqlite:////proc/nope/mlflow.db")
@@ -100,7 +101,6 @@ def small_disk(tmp_path):
     subprocess.run(["umount", "-l", str(mnt)], check=False)
 
 
-@pytest.mark.slow  # two real runs
 def test_a_disk_that_fills_mid_run(small_disk, tmp_path):
     toy = Toy(tmp_path / "t")
     toy.work = small_disk / "w"

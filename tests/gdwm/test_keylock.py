@@ -130,7 +130,6 @@ def _open_store(uri: str, barrier, out) -> None:
         out.put(f"{type(e).__name__}: {e}")
 
 
-@pytest.mark.slow  # ~40 s on 2 cores: three schema creations in a row
 def test_drivers_initialising_one_fresh_sqlite_store_together_both_succeed(tmp_path):
     # Without the store's file lock this fails most times: "duplicate column name: step" or
     # "Online migration expected to match one row" from the racing alembic migrations.

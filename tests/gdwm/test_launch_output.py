@@ -24,6 +24,8 @@ import pytest
 from gdwm.events import read_events
 from tests.gdwm.test_run import Toy, _ok
 
+pytestmark = pytest.mark.heavy(2)
+
 COLS, ROWS = 160, 60
 
 

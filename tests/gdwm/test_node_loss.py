@@ -26,6 +26,8 @@ import pytest
 from gdwm.cache import Cache
 from tests.gdwm.test_run import Toy
 
+pytestmark = pytest.mark.heavy(3)
+
 
 def _children(pid: int) -> list[int]:
     """Every descendant of ``pid`` (from /proc)."""
@@ -62,7 +64,6 @@ def _wait_for(path: Path, proc: subprocess.Popen, timeout: float) -> None:
         time.sleep(0.2)
 
 
-@pytest.mark.slow  # the toy sweep (3 rows) on a 2-node sim cluster with a restart: ~4 min on 2 cores
 @pytest.mark.timeout(1200)
 def test_losing_the_training_node_mid_sweep_resumes_from_the_last_checkpoint_and_finishes(tmp_path):
     toy = Toy(tmp_path)
@@ -121,7 +122,6 @@ def test_losing_the_training_node_mid_sweep_resumes_from_the_last_checkpoint_and
     assert not list((toy.work / "sim-cluster").glob("*.json"))
 
 
-@pytest.mark.slow  # one toy reconstruct on a 2-node sim cluster with a node lost mid-stage: ~1-2 min on 2 cores
 def test_losing_a_node_mid_per_scene_stage_reruns_its_scenes_on_the_other_node(tmp_path):
     toy = Toy(tmp_path)
     proc = subprocess.Popen(

@@ -105,8 +105,7 @@ def test_config_show_masks_credentials():
     assert "uri: s3://KEY:***@bucket/cache?X-Amz-Security-Token=***" in r.stdout
 
 
-# make test-all: Ray start-up dominates; the params and console tests above fail on leaking code in seconds
-@pytest.mark.slow
+# the params and console tests above fail on leaking code in seconds; this is the whole path through a real run
 def test_run_logs_no_credentials_to_mlflow(tmp_path):
     """A real `gdwm run` whose cache URI carries a token (the local filesystem ignores it): the cache is used as
     given, while no param or tag of any run, and nothing printed, carries the token."""

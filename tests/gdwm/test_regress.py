@@ -14,6 +14,8 @@ from gdwm.cli import main
 from gdwm.regress import CheckTest, Direction, MetricCheck, check, failed
 from tests.gdwm.test_run import Toy, _ok
 
+pytestmark = pytest.mark.heavy(4)
+
 
 def _regress(toy: Toy, *overrides: str) -> subprocess.CompletedProcess:
     args = [sys.executable, "-m", "gdwm", "regress", f"workdir={toy.work}", f"data.root={toy.data}", *overrides]
@@ -29,7 +31,6 @@ def baselined(tmp_path_factory) -> Toy:
     return toy
 
 
-@pytest.mark.slow  # make test-all: a baseline and a regress run of the real pipeline
 def test_passes_against_its_own_baseline(baselined):
     r = _regress(baselined, "benchmark=toy_nightly")
     _ok(r)
@@ -45,7 +46,6 @@ def test_passes_against_its_own_baseline(baselined):
     assert {"regression.md", "trend.png"} <= arts
 
 
-@pytest.mark.slow  # make test-all: a baseline and a regress run
 def test_weakened_model_fails_naming_the_metric(baselined):
     # the weakened model: plan_acc 12, MAE 100/13
     r = _regress(baselined, "benchmark=toy_nightly", "experiment=toy", "stage.toy_lora.rank=1")
@@ -56,7 +56,6 @@ def test_weakened_model_fails_naming_the_metric(baselined):
     assert "fail" in {x.data.tags["gdwm.verdict"] for x in runs}
 
 
-@pytest.mark.slow
 def test_better_model_is_improved_not_a_regression(baselined):
     # a better model: plan_acc 96, MAE lower
     r = _regress(baselined, "benchmark=toy_nightly", "experiment=toy", "stage.toy_lora.rank=8")
@@ -85,7 +84,6 @@ def _acc(rank: float, seeds) -> list[float]:
     return [12 * (rank + seed_noise(s)) for s in seeds]  # toy lora: 3 steps x 4 dims of (rank + noise(seed))
 
 
-@pytest.mark.slow  # make test-all: a 3-seed baseline of the real pipeline
 def test_seeded_baseline_records_mean_spread_and_samples(seeded):
     (base,) = seeded.runs("regression")
     acc = _acc(4, (0, 1, 2))
@@ -98,7 +96,6 @@ def test_seeded_baseline_records_mean_spread_and_samples(seeded):
     assert base.data.tags["gdwm.scorer.evaluate_qa"] == "tests.gdwm.stages:score_toy"
 
 
-@pytest.mark.slow  # make test-all: a 3-seed baseline and three more seeds
 def test_other_seeds_of_the_same_model_do_not_fire(seeded):
     # seeds 3-5 of the same model: the mean of plan_acc drops by 2.7 std of a difference of two 3-seed means
     r = _regress(seeded, "benchmark=toy_seeds", "seeds=[3,4,5]")
@@ -111,7 +108,6 @@ def test_other_seeds_of_the_same_model_do_not_fire(seeded):
     assert f"3σ = {3 * sigma:.3g}" in r.stdout
 
 
-@pytest.mark.slow  # make test-all: a 3-seed baseline and a regress run
 def test_a_planted_regression_fires(seeded):
     r = _regress(seeded, "benchmark=toy_seeds", "experiment=toy", "stage.toy_lora.rank=1")
     assert r.returncode == 1, r.stderr[-3000:]

@@ -20,6 +20,8 @@ from omegaconf import OmegaConf
 from gdwm.environment.runs import CONFIG_ARTIFACT
 from tests.gdwm.test_run import Toy, _ok
 
+pytestmark = pytest.mark.heavy(1.5)
+
 TARGETS = "targets=[evaluate_qa]"  # the QA branch only: 9 cache entries (3 + 3 per-scene, tokenizer, lora, eval)
 
 

@@ -21,6 +21,8 @@ import pytest
 from gdwm.cache import Cache
 from tests.gdwm.toydata import make_dataset
 
+pytestmark = pytest.mark.heavy(5)
+
 REPO = Path(__file__).resolve().parents[2]
 ALL = ["reconstruct", "distill", "tokenizer", "lora", "evaluate_qa", "diffusion", "evaluate_gen"]
 
@@ -157,7 +159,6 @@ def test_identical_rerun_is_all_cache_hits(first_run, tmp_path):
     assert "all 11 stage outputs cached and verified; nothing to run" in r.stdout
 
 
-@pytest.mark.slow  # make test-all: three trials
 def test_seeds_run_one_trial_each_and_share_seed_free_stages(first_run, tmp_path):
     """seeds=[0,1,2] after a seed-0 run: seed 0 is all cache hits, seeds 1 and 2 run only the seeded stages and what
     follows them; seed 2 fails, the run reports it (exit 1) and the row aggregates the two seeds that finished."""
@@ -202,7 +203,6 @@ def test_bad_seeds_exit_2(tmp_path, args, message):
     assert not (toy.work / "mlflow.db").exists()
 
 
-@pytest.mark.slow  # make test-all: a rerun from lora; test_code_keys checks the same for a code edit
 def test_lora_change_reruns_lora_and_descendants_only(first_run, tmp_path):
     toy = _copy(first_run, tmp_path)
     _ok(toy.run("stage.toy_lora.rank=8"))
@@ -210,14 +210,12 @@ def test_lora_change_reruns_lora_and_descendants_only(first_run, tmp_path):
     assert Counter(r.data.tags["gdwm.stage"] for r in toy.runs())["lora"] == 2
 
 
-@pytest.mark.slow  # make test-all: a second run
 def test_targets_run_only_ancestors(first_run, tmp_path):
     toy = _copy(first_run, tmp_path)
     _ok(toy.run("stage.toy_lora.rank=16", "targets=[evaluate_qa]"))
     assert sorted(s for s, _ in toy.executions()) == ["evaluate_qa", "lora"]
 
 
-@pytest.mark.slow  # make test-all: a recompute run
 def test_flipped_byte_is_detected_and_recomputed(first_run, tmp_path):
     toy = _copy(first_run, tmp_path)
     cache = Cache(toy.work / "cache")
@@ -264,7 +262,6 @@ def test_dry_run_prints_plan_without_running(first_run, tmp_path):
     assert ("diffusion", "train: 1 CPU, 0 GPU, in-process") in res  # and Ray Train with num_workers=0
 
 
-@pytest.mark.slow  # make test-all (keeps `make test` under 20 minutes on 2 cores)
 def test_killed_scene_worker_is_retried_and_outputs_match(first_run, tmp_path):
     toy = Toy(tmp_path)
     _ok(toy.run(GDWM_TEST_KILL="reconstruct:scene-0001"))
@@ -277,8 +274,7 @@ def test_killed_scene_worker_is_retried_and_outputs_match(first_run, tmp_path):
         assert mine is not None and mine.files == m.files, (m.stage, m.scene)
 
 
-# make test-all: tests/gdwm/test_checkpoints.py covers the resume rule in process and through the CLI
-@pytest.mark.slow
+# a real worker group (num_workers=1): tests/gdwm/test_checkpoints.py covers the resume rule in process and the CLI
 def test_killed_train_worker_resumes_from_last_checkpoint(tmp_path):
     toy = Toy(tmp_path)
     r = toy.run("targets=[tokenizer]", "cluster.resources.train.num_workers=1", GDWM_TEST_KILL="tokenizer:step=1")
@@ -294,7 +290,6 @@ def test_killed_train_worker_resumes_from_last_checkpoint(tmp_path):
     assert tok.info.status == "FINISHED"
 
 
-@pytest.mark.slow  # make test-all: two more runs on top of first_run
 def test_failing_stage_exits_1_naming_it_and_keeps_the_cache(first_run, tmp_path):
     toy = _copy(first_run, tmp_path)
     r = toy.run("stage.toy_diffusion.steps=5", GDWM_TEST_FAIL="evaluate_gen:None")
@@ -311,7 +306,6 @@ def test_failing_stage_exits_1_naming_it_and_keeps_the_cache(first_run, tmp_path
     assert toy.executions() == [("evaluate_gen", "-")]
 
 
-@pytest.mark.slow  # make test-all: a second run per policy on top of first_run (~45 s each)
 @pytest.mark.parametrize("policy", ["fail", "skip"])
 def test_scene_error_policy(first_run, tmp_path, policy):
     toy = _copy(first_run, tmp_path)
@@ -358,7 +352,6 @@ def _start_blocked(toy: Toy, block: str) -> subprocess.Popen:
     return proc
 
 
-@pytest.mark.slow  # make test-all: a killed and a resumed driver (~105 s)
 def test_sigkilled_driver_resumes_without_duplicates(tmp_path):
     toy = Toy(tmp_path)
     proc = _start_blocked(toy, "lora:step=1")
@@ -393,7 +386,6 @@ def test_sigkilled_driver_resumes_without_duplicates(tmp_path):
     assert sorted({m.value for m in client.get_metric_history(lora.info.run_id, "start")}) == [0.0, 2.0]
 
 
-@pytest.mark.slow  # make test-all; tests/gdwm/test_tracking.py checks the SIGTERM handler on one run in seconds
 def test_sigterm_ends_every_run_killed(tmp_path):
     toy = Toy(tmp_path)
     proc = _start_blocked(toy, "tokenizer")

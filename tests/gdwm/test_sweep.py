@@ -16,6 +16,8 @@ import pytest
 from gdwm.cli import main
 from tests.gdwm.test_run import Toy, _ok
 
+pytestmark = pytest.mark.heavy(3.5)
+
 
 def _sweep(toy: Toy, *overrides: str, **inject: str) -> subprocess.CompletedProcess:
     args = [sys.executable, "-m", "gdwm", "sweep", f"workdir={toy.work}", f"data.root={toy.data}", *overrides]
@@ -35,7 +37,6 @@ def swept(tmp_path_factory) -> Toy:
     return toy
 
 
-@pytest.mark.slow  # make test-all: the toy sweep fixture (~100 s); the CLI checks above stay
 def test_shared_stages_run_exactly_once(swept):
     # 3 trials x (3 scenes x 2 per-scene stages + tokenizer + lora + evaluate_qa) = 27 as independent runs
     assert Counter(s for s, _ in swept.executions()) == {
@@ -51,7 +52,6 @@ def test_shared_stages_run_exactly_once(swept):
     assert "(shared by 3 trials)" in swept.stdout  # tokenizer
 
 
-@pytest.mark.slow  # make test-all: the toy sweep fixture
 def test_one_parent_a_run_per_row_and_a_child_per_trial(swept):
     (parent,) = swept.runs("sweep")
     assert parent.info.status == "FINISHED" and parent.data.tags["gdwm.sweep"] == "toy_ablation"
@@ -80,7 +80,6 @@ def test_one_parent_a_run_per_row_and_a_child_per_trial(swept):
     assert len({t.data.tags["gdwm.stage_run.lora"] for t in trials.values()}) == 3
 
 
-@pytest.mark.slow  # make test-all: the toy sweep fixture
 def test_report_written_and_logged_to_the_sweep_run(swept):
     md = (swept.work / "reports" / "toy_ablation" / "nuinteract.md").read_text()
     assert "**96.00 [" in md and "<u>48.00 [" in md  # plan accuracy: best and second, each with its interval
@@ -89,7 +88,6 @@ def test_report_written_and_logged_to_the_sweep_run(swept):
     assert "compare/nuinteract/nuinteract.html" in logged
 
 
-@pytest.mark.slow
 def test_rerun_is_all_cached_and_extending_runs_only_new_stages(swept, tmp_path):
     from tests.gdwm.test_run import _copy
 
@@ -114,7 +112,6 @@ def test_bad_row_is_rejected_before_launch(tmp_path):
     assert not (toy.work / "mlflow.db").exists() and not (tmp_path / "executions.log").exists()
 
 
-@pytest.mark.slow
 def test_failing_trial_does_not_stop_the_others(tmp_path):
     toy = Toy(tmp_path)
     r = _sweep(toy, "sweep=toy_grid")
@@ -134,7 +131,6 @@ def test_failing_trial_does_not_stop_the_others(tmp_path):
     assert "failed at lora" in md
 
 
-@pytest.mark.slow
 def test_sigkilled_driver_resumes_the_sweep_without_duplicates(tmp_path):
     toy = Toy(tmp_path)
     args = [sys.executable, "-m", "gdwm", "sweep", "sweep=toy_ablation", f"workdir={toy.work}", f"data.root={toy.data}"]
@@ -159,7 +155,6 @@ def test_sigkilled_driver_resumes_the_sweep_without_duplicates(tmp_path):
     assert Counter(s for s, _ in toy.executions())["tokenizer"] == 1  # finished before the kill: not redone
 
 
-@pytest.mark.slow  # make test-all: a 2-row x 2-seed toy sweep (~2 min)
 def test_seeds_share_seed_free_stages_and_aggregate_per_row(tmp_path):
     """2 rows x 3 seeds: reconstruct and distill (seed-free) run once, tokenizer once per seed (shared by the rows),
     lora and evaluate_qa once per (row, seed); each row's run holds mean, std and n over its seeds."""

@@ -30,6 +30,8 @@ from tests.gdwm.light_stages import light_value
 from tests.gdwm.servers import TeamStore
 from tests.gdwm.toydata import make_dataset
 
+pytestmark = pytest.mark.heavy(3.5)
+
 REPO = Path(__file__).resolve().parents[2]
 ROWS = {"team_a": (1, 2), "team_b": (2, 3), "team_c": (4, 5)}
 """Each test sweep's rows: the value of ``stage.light_fit.x`` (tests/conf/sweep/team_*.yaml)."""

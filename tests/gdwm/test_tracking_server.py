@@ -16,8 +16,9 @@ from gdwm.tracking import TrackingBackend
 from tests.gdwm.servers import MlflowServer, mlflow_auth_server, rest_call
 from tests.gdwm.test_run import Toy, _ok
 
+pytestmark = pytest.mark.heavy(1.5)
+
 # One server start (25-50 s on a loaded 2-CPU box) plus two `gdwm run`s on local Ray: minutes, not seconds.
-pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")

@@ -30,7 +30,6 @@ def _refused(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) != 0
 
 
-@pytest.mark.slow  # make test-all: a real MLflow UI server (~30 s)
 def test_ui_serves_the_store_and_stops_cleanly(tmp_path):
     backend = TrackingBackend(f"sqlite:///{tmp_path}/mlflow.db", "gdwm", str(tmp_path / "mlartifacts"))
     run_id = backend.create_run("run-x", {"gdwm.kind": "run"})

@@ -22,6 +22,8 @@ from gdwm.zoo.refs import ZooError, parse_ref
 from gdwm.zoo.registry import flavor, pin_references, resolve
 from tests.gdwm.toydata import make_dataset
 
+pytestmark = pytest.mark.heavy(2)
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -75,7 +77,6 @@ def zoo(tmp_path_factory) -> Zoo:
     return z
 
 
-@pytest.mark.slow  # make test-all: the zoo fixture's runs (~75 s)
 def test_a_published_stage_registers_its_component_with_lineage(zoo):
     cache = Cache(zoo.work / "cache")
     keys = {m.config["stage.toy_zoo_train"]["value"]: m.key for m in cache.entries("zoo_train")}
@@ -101,7 +102,6 @@ def test_a_published_stage_registers_its_component_with_lineage(zoo):
     }
 
 
-@pytest.mark.slow  # make test-all: the zoo fixture's runs
 def test_promote_then_load_returns_the_stage_output_byte_for_byte(zoo, tmp_path):
     r = _ok(zoo.gdwm("zoo", "promote", "args.name=gdwm-toy", "args.version=1"))
     assert "gdwm-toy@champion -> version 1" in r.stdout
@@ -119,7 +119,6 @@ def test_promote_then_load_returns_the_stage_output_byte_for_byte(zoo, tmp_path)
     assert zoo.aliases() == {"candidate": 2, "champion": 2}
 
 
-@pytest.mark.slow
 def test_a_cache_hit_or_a_failed_stage_registers_nothing(zoo):
     hit = _ok(zoo.run("targets=[zoo_train]"))
     assert "nothing to run" in hit.stdout
@@ -132,7 +131,6 @@ def test_a_cache_hit_or_a_failed_stage_registers_nothing(zoo):
     assert sorted(zoo.versions()) == [1, 2]
 
 
-@pytest.mark.slow
 def test_a_stage_reading_the_zoo_uses_the_pinned_version(zoo):
     cache = Cache(zoo.work / "cache")
     seen = {}
@@ -147,14 +145,12 @@ def test_a_stage_reading_the_zoo_uses_the_pinned_version(zoo):
     assert len(set(seen.values())) == 2 and len(cache.entries("zoo_use")) == 2
 
 
-@pytest.mark.slow  # make test-all: the zoo fixture's runs
 def test_an_unknown_reference_fails_before_anything_runs(zoo):
     bad = zoo.run("targets=[zoo_use]", "stage.toy_zoo_use.source=zoo:gdwm-toy@best")
     assert bad.returncode == 1 and "Started a local Ray" not in bad.stderr
     assert "stage.toy_zoo_use.source=zoo:gdwm-toy@best: model 'gdwm-toy' has no alias 'best'" in bad.stderr
 
 
-@pytest.mark.slow  # make test-all: the zoo fixture's runs
 def test_zoo_list_show_and_an_error(zoo):
     zoo.promote(1)
     rows = [line for line in _ok(zoo.gdwm("zoo", "list")).stdout.splitlines() if "gdwm-toy" in line]
@@ -211,7 +207,6 @@ def test_pin_references_resolve_and_tag_versions_on_a_store(tmp_path):
     backend.close()
 
 
-@pytest.mark.slow  # make test-all: a run and a zoo load (~40 s)
 def test_zoo_load_refuses_a_version_whose_files_lie_outside_its_run(tmp_path):
     """A registered version's source is copied only from inside the artifact directory of the run that registered it:
     another directory, a ``..`` out of the run, or a symlink inside it leading out is refused, naming the path."""

@@ -23,6 +23,8 @@ from tests.pipelines.conftest import gdwm_cli
 from tests.pipelines.data.fixtures_benchmarks import write_nuinstruct, write_nuinteract, write_omnidrive
 from tests.pipelines.data.fixtures_nuscenes import write_nuscenes
 
+pytestmark = pytest.mark.heavy(1.5)
+
 CHEAP = ["cluster.resources.gpu.num_workers=1", "cluster.resources.cpu.num_workers=1"]
 """One scene actor per per-scene stage: the three datasets' reconstructions run side by side on 2 CPUs."""
 METRICS = {

@@ -12,6 +12,8 @@ from gdwm.cache import Cache
 from tests.pipelines.conftest import TINY_RUN as TINY
 from tests.pipelines.conftest import gdwm_cli as _gdwm
 
+pytestmark = [pytest.mark.heavy(3), pytest.mark.xdist_group("tiny_run")]
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -42,7 +44,6 @@ def twice(tiny_run, tmp_path_factory) -> tuple[Path, dict, dict, dict, dict]:
     return tiny_run.data, runs[0][0], runs[1][0], runs[0][1], runs[1][1]
 
 
-@pytest.mark.slow  # make test-all: two real runs from scratch; make test checks the seeding (tests/gdwm)
 def test_two_runs_from_scratch_give_the_same_bytes(twice):
     _, a, b, files_a, files_b = twice
     assert list(a) == list(b)  # one trial, the same cache key in both workdirs
@@ -53,7 +54,6 @@ def test_two_runs_from_scratch_give_the_same_bytes(twice):
     assert len(files_a) == 7 and files_a == files_b
 
 
-@pytest.mark.slow  # make test-all: a 3-trial sweep of the real pipeline; the two-workdir byte test stays
 def test_the_same_trial_in_a_concurrent_sweep_gives_the_same_bytes(twice, tmp_path):
     data, alone = twice[:2]
     r = _gdwm("sweep", "sweep=tiny_concurrent", f"workdir={tmp_path}", f"data.root={data}")

@@ -1,6 +1,6 @@
 """The shipped nightly suite (conf/benchmark/nightly.yaml: the demo experiment over seeds 0-2, tolerances of 3 std of
 the baseline's spread) on the real stages: it passes against other seeds of the same model and fires on a model that
-is clearly worse. About 25 minutes on 2 cores: `make test-all`."""
+is clearly worse."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.heavy(10)
 
 
 def _regress(work, *args: str) -> subprocess.CompletedProcess:

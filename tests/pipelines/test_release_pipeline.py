@@ -79,7 +79,6 @@ def test_the_journal_sweep_on_the_release_refuses_the_rows_it_cannot_feed(work):
     assert err.rstrip().endswith("run the other rows alone with \"sweep.only=['Voxel Top-K + Similarity']\"")
 
 
-@pytest.mark.slow  # two more dry-run sweeps of the journal's 5 rows (~25 s on 2 cores)
 def test_sweep_only_keeps_the_rows_the_release_feeds_and_names_an_unknown_row(work):
     only = _gdwm("sweep", "--dry-run", "sweep=journal_ablation", "experiment=gaussiandwm_release", f"workdir={work}",
                  "sweep.only=['Voxel Top-K + Similarity']", *TINY)  # fmt: skip
@@ -127,7 +126,6 @@ def test_the_newest_run_of_a_row_is_the_row():
 GEN = ["stage/diffusion_vae=tiny", "stage/diffusion=tiny", "stage/evaluate_gen=tiny"]
 
 
-@pytest.mark.slow  # the release's whole tiny pipeline on local Ray: ~85 s on 2 idle cores (make test keeps the rest)
 def test_a_tiny_release_experiment_runs_through_evaluate_qa_and_evaluate_gen_on_local_ray(work):
     r = _gdwm("run", "experiment=gaussiandwm_release", f"workdir={work}", "targets=[evaluate_qa,evaluate_gen]", *TINY,
               *GEN)  # fmt: skip

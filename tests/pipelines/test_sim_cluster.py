@@ -14,10 +14,11 @@ from gdwm.cache import Cache
 from tests.gdwm.test_cluster_sim import _placement
 from tests.pipelines.conftest import TINY_RUN, gdwm_cli
 
+pytestmark = pytest.mark.heavy(2.5)
+
 GEN = ["stage/diffusion_vae=tiny", "stage/diffusion=tiny"]
 
 
-@pytest.mark.slow  # the tiny understanding branch and the tiny diffusion on a 2-node sim cluster: ~6 min on 2 cores
 @pytest.mark.timeout(1800)
 def test_tiny_pipelines_train_on_the_sim_clusters_fake_gpus(tmp_path):
     work = tmp_path / "w"

@@ -26,7 +26,7 @@ from tests.gdwm.ui.dash import browser, dashboard, env
 TRIALS = 4  # toy_grid: short/long x rank 3/-1
 # The module's store is a real toy sweep, its table a real bootstrap and three real regressions: on 2 loaded cores
 # its setup alone can pass the suite's 600 s per test.
-pytestmark = pytest.mark.timeout(2400)
+pytestmark = [pytest.mark.timeout(2400), pytest.mark.heavy(2.5)]
 
 
 def _wait_file(path: Path, proc: subprocess.Popen, timeout_s: float = 300) -> None:

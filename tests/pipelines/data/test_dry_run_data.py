@@ -36,7 +36,7 @@ def test_dry_run_on_an_absent_dataset_plans_without_generating(tmp_path):
     assert not work.exists()  # nothing written: no dataset, no temp directory, no store
 
 
-@pytest.mark.parametrize("flag", [pytest.param("--dry-run", marks=pytest.mark.slow), None])
+@pytest.mark.parametrize("flag", ["--dry-run", None])
 def test_num_scenes_below_one_exits_2_naming_the_key(tmp_path, flag):
     work = tmp_path / "w"
     r = _gdwm("run", *([flag] if flag else []), f"workdir={work}", "data.num_scenes=0")
@@ -50,7 +50,6 @@ def test_planner_checks_the_same_keys_as_the_builder():
         planned_scenes(SynthConfig(width=8))
 
 
-@pytest.mark.slow  # a process start plus the first scenes of a generation
 def test_sigterm_during_generation_leaves_no_temp_directory(tmp_path):
     work = tmp_path / "w"
     env = {**os.environ, "PYTHONPATH": str(REPO)}

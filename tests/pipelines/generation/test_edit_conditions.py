@@ -110,7 +110,6 @@ def test_a_removal_conditions_on_the_edited_gaussians_and_prompts_with_the_instr
     assert t.qa().instruction == view
 
 
-@pytest.mark.slow  # a tiny world model and its C_L: ~10-25 s on 2 shared cores
 def test_the_instruction_changes_c_l(synth_small, world):
     model, dirs = world
     ds = GSQADataset(synth_small)
