@@ -13,7 +13,7 @@ import torch
 from gdwm.compare.runs import Row, Trial
 from gdwm.environment.differences import brief, differences
 from gdwm.environment.lock import venv_lock
-from gdwm.environment.record import code_state, commit_tag, digest, environment, summary
+from gdwm.environment.record import THREAD_VARS, code_state, commit_tag, digest, environment, summary
 from gdwm.environment.runs import DIGEST_TAG, RECORD_RUN_TAG, baseline_flags, environment_note, tag_run
 
 
@@ -179,5 +179,6 @@ def test_a_process_without_torch_reads_its_facts_from_the_last_computation(tmp_p
     assert second[:3] == first[:3] == [rec["digest"], rec["torch"], rec["threads"]]
     assert json.loads(written.read_text())["torch"]["config"] == torch.__config__.show()
     env["OMP_NUM_THREADS"] = "1"  # what sets torch's threads is part of the file's name: computed again
-    assert record()[2] == {"torch": 1, "torch_interop": rec["threads"]["torch_interop"], "OMP_NUM_THREADS": "1"}
+    expected = {v: env[v] for v in THREAD_VARS if v in env}  # the thread variables the process saw
+    assert record()[2] == {"torch": 1, "torch_interop": rec["threads"]["torch_interop"], **expected}
     assert len(list((tmp_path / "environment").glob("torch-*.json"))) == 2

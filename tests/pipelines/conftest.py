@@ -67,3 +67,19 @@ def tiny_run(tmp_path_factory) -> TinyRun:
     args = [f"workdir={work}", f"data.root={work / 'data'}", *TINY_RUN]
     r = gdwm_cli("run", *args)
     return TinyRun(work, work / "data", args, r.stdout)
+
+
+@dataclass(frozen=True)
+class DemoSweep:
+    work: Path
+    stdout: str
+
+
+@pytest.fixture(scope="session")
+def demo_sweep(tmp_path_factory) -> DemoSweep:
+    """``make demo``'s sweep once (journal_ablation, experiment=demo, its data generated first): the demo table's test
+    reads its report, and the nightly suite records its baseline in the same workdir, where seed 0 of the nightly's
+    model is the sweep's last row (``experiment=demo`` composes to that row's config), every stage of it cached."""
+    work = tmp_path_factory.mktemp("demo") / "w"
+    r = gdwm_cli("sweep", "sweep=journal_ablation", "experiment=demo", f"workdir={work}", timeout=3000)
+    return DemoSweep(work, r.stdout)

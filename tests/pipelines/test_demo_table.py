@@ -1,7 +1,7 @@
 """`make demo`'s table shows learning: every metric column of the journal table is above 0 in some row (before the
 instruction warm-up of the tiny LLM and grounding referents of at least one patch, the README's table had 2D VG mAP,
-2D VG F1 and Plan Acc at 0.00 in every row, and the issue's run 7 of the 11 columns). The whole demo sweep:
-five trials, 5-10 minutes on 2 cores."""
+2D VG F1 and Plan Acc at 0.00 in every row, and the issue's run 7 of the 11 columns). The whole demo sweep
+(``demo_sweep``, tests/pipelines/conftest.py): five trials, 5-10 minutes on 2 cores."""
 
 from __future__ import annotations
 
@@ -10,9 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.pipelines.conftest import gdwm_cli
-
-pytestmark = pytest.mark.heavy(6)
+pytestmark = [pytest.mark.heavy(6), pytest.mark.xdist_group("demo"), pytest.mark.timeout(3000)]
 
 CELL = re.compile(r"^\**(?:<u>)?(-?\d+\.\d+) \[")
 
@@ -26,8 +24,8 @@ def metric_columns(report: Path) -> dict[str, list[float]]:
     return {h: [float(CELL.match(r[i]).group(1)) for r in rows] for i, h in enumerate(header) if h.endswith(("↑", "↓"))}
 
 
-def test_every_metric_column_of_the_demo_table_learns(tmp_path):
-    gdwm_cli("sweep", "sweep=journal_ablation", "experiment=demo", f"workdir={tmp_path / 'w'}", timeout=3000)
-    columns = metric_columns(tmp_path / "w" / "reports" / "journal_ablation" / "nuinteract.md")
+def test_every_metric_column_of_the_demo_table_learns(demo_sweep):
+    assert "sweep: 5 trials" in demo_sweep.stdout
+    columns = metric_columns(demo_sweep.work / "reports" / "journal_ablation" / "nuinteract.md")
     assert len(columns) == 11 and {len(v) for v in columns.values()} == {5}
     assert [h for h, v in columns.items() if max(v) <= 0] == []

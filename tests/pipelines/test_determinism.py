@@ -1,5 +1,6 @@
-"""A trial is bit-identical wherever it runs: twice from scratch in two workdirs, and again as one of three trials of
-a sweep running side by side (the real stages, tiny flavors, local Ray on 2 CPUs)."""
+"""A trial is bit-identical wherever it runs: from scratch alone (the session's tiny run), and from scratch again in
+another workdir as one of three trials of a sweep running side by side (the real stages, tiny flavors, local Ray on
+2 CPUs): every file of every stage entry, the predictions and the metrics."""
 
 from __future__ import annotations
 
@@ -9,7 +10,6 @@ from pathlib import Path
 import pytest
 
 from gdwm.cache import Cache
-from tests.pipelines.conftest import TINY_RUN as TINY
 from tests.pipelines.conftest import gdwm_cli as _gdwm
 
 pytestmark = [pytest.mark.heavy(3), pytest.mark.xdist_group("tiny_run")]
@@ -35,32 +35,30 @@ def _files(work: Path) -> dict[tuple[str, str | None, str], dict[str, str]]:
 
 
 @pytest.fixture(scope="module")
-def twice(tiny_run, tmp_path_factory) -> tuple[Path, dict, dict, dict, dict]:
-    """The shared tiny run, and the same command from scratch in a second workdir (same data)."""
-    other = tmp_path_factory.mktemp("det") / "b"
-    runs = [(_evaluation(tiny_run.work), _files(tiny_run.work))]
-    _gdwm("run", f"workdir={other}", f"data.root={tiny_run.data}", *TINY)
-    runs.append((_evaluation(other), _files(other)))
-    return tiny_run.data, runs[0][0], runs[1][0], runs[0][1], runs[1][1]
+def swept(tiny_run, tmp_path_factory) -> tuple[Path, str]:
+    """The tiny run's trial from scratch again, in another workdir (same data), as one of the three trials of a sweep
+    running side by side: its first row is the tiny run's config."""
+    work = tmp_path_factory.mktemp("det") / "sweep"
+    r = _gdwm("sweep", "sweep=tiny_concurrent", f"workdir={work}", f"data.root={tiny_run.data}")
+    return work, r.stdout
 
 
-def test_two_runs_from_scratch_give_the_same_bytes(twice):
-    _, a, b, files_a, files_b = twice
-    assert list(a) == list(b)  # one trial, the same cache key in both workdirs
-    ((preds_a, metrics_a),), ((preds_b, metrics_b),) = a.values(), b.values()
-    assert preds_a == preds_b
-    assert metrics_a == metrics_b and metrics_a["count/answered"] == 24
-    # and so is every stage's every file on the way: the trained models, the LoRA adapter and its card included
-    assert len(files_a) == 7 and files_a == files_b
+def test_the_trial_from_scratch_again_gives_the_same_bytes_in_every_entry(tiny_run, swept):
+    alone, again = _files(tiny_run.work), _files(swept[0])
+    # one trial alone: 2 scenes reconstructed and distilled, the tokenizer, LoRA and evaluation; the same keys
+    # in the sweep's workdir (its other rows add entries of their own), every file of each the same bytes
+    assert len(alone) == 7 and {k: again.get(k) for k in alone} == alone
 
 
-def test_the_same_trial_in_a_concurrent_sweep_gives_the_same_bytes(twice, tmp_path):
-    data, alone = twice[:2]
-    r = _gdwm("sweep", "sweep=tiny_concurrent", f"workdir={tmp_path}", f"data.root={data}")
-    assert "sweep: 3 trials" in r.stdout
-    swept = _evaluation(tmp_path)
-    assert len(swept) == 3
+def test_the_same_trial_in_a_concurrent_sweep_gives_the_same_predictions_and_metrics(tiny_run, swept):
+    work, stdout = swept
+    alone = _evaluation(tiny_run.work)
+    assert "sweep: 3 trials" in stdout
+    swept_eval = _evaluation(work)
+    assert len(swept_eval) == 3
     (key,) = alone
-    assert swept[key] == alone[key]  # predictions bytes and metrics
-    others = [v[0] for k, v in swept.items() if k != key]
-    assert all(p != alone[key][0] for p in others)  # the other rows are other models
+    ((preds, metrics),) = alone.values()
+    assert metrics["count/answered"] == 24
+    assert swept_eval[key] == (preds, metrics)  # predictions bytes and metrics
+    others = [v[0] for k, v in swept_eval.items() if k != key]
+    assert all(p != preds for p in others)  # the other rows are other models

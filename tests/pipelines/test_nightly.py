@@ -1,15 +1,16 @@
 """The shipped nightly suite (conf/benchmark/nightly.yaml: the demo experiment over seeds 0-2, tolerances of 3 std of
 the baseline's spread) on the real stages: it passes against other seeds of the same model and fires on a model that
-is clearly worse."""
+is clearly worse. It runs in the demo sweep's workdir (``demo_sweep``), which holds its seed 0 already."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
 
+import mlflow
 import pytest
 
-pytestmark = pytest.mark.heavy(10)
+pytestmark = [pytest.mark.heavy(10), pytest.mark.xdist_group("demo"), pytest.mark.timeout(3600)]
 
 
 def _regress(work, *args: str) -> subprocess.CompletedProcess:
@@ -17,12 +18,21 @@ def _regress(work, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run(cmd, capture_output=True, text=True, timeout=3600)
 
 
+def _evaluations(work) -> int:
+    client = mlflow.MlflowClient(f"sqlite:///{work.resolve()}/mlflow.db")
+    exp = client.get_experiment_by_name("gdwm")
+    return len(client.search_runs([exp.experiment_id], "tags.`gdwm.stage` = 'evaluate_qa'", max_results=1000))
+
+
 @pytest.fixture(scope="module")
-def baselined(tmp_path_factory):
-    work = tmp_path_factory.mktemp("nightly")
+def baselined(demo_sweep):
+    """The baseline in the demo's workdir: seed 0 is the demo sweep's last row, cached; seeds 1 and 2 are computed."""
+    work = demo_sweep.work
+    before = _evaluations(work)
     r = _regress(work, "--set-baseline")
     assert r.returncode == 0, r.stderr[-3000:]
     assert "recorded run" in r.stdout and "mean of seeds [0, 1, 2]" in r.stdout
+    assert _evaluations(work) == before + 2  # seed 0 evaluated nothing again
     return work
 
 
