@@ -26,6 +26,8 @@ from pathlib import Path
 import boto3
 from moto.server import ThreadedMotoServer
 
+from gdwm.ui.serve import mlflow_server_env
+
 BUCKET = "gdwm"
 SECRET = "wJalrXUtnFEMI-not-a-real-secret-K7MDENG"
 """The S3 secret the tests' environment carries: no output may ever show it."""
@@ -166,7 +168,7 @@ def mlflow_auth_server(
         "auth_cache_ttl_seconds = 300\n"
     )
     admin_password = secrets.token_urlsafe(18)
-    server_env = {k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")}
+    server_env = mlflow_server_env({k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")})
     server_env.update(
         MLFLOW_FLASK_SERVER_SECRET_KEY=secrets.token_hex(16),
         MLFLOW_AUTH_CONFIG_PATH=str(ini),

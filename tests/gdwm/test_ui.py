@@ -35,6 +35,7 @@ def test_ui_serves_the_store_and_stops_cleanly(tmp_path):
     run_id = backend.create_run("run-x", {"gdwm.kind": "run"})
     backend.end_run(run_id)
     port, dash = _free_port(), _free_port()
+    lines: list[str] = []
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -68,9 +69,13 @@ def test_ui_serves_the_store_and_stops_cleanly(tmp_path):
         assert exp["experiment_id"] == backend.experiment_id
         run = json.loads(_get(f"http://127.0.0.1:{port}/api/2.0/mlflow/runs/get?run_id={run_id}"))["run"]
         assert run["info"]["run_name"] == "run-x" and run["info"]["status"] == "FINISHED"
+        # gdwm ui names MLflow's URL once it has seen it answer (its own check, a moment after this test's)
+        while not any(ln.startswith("MLflow UI: ") for ln in lines) and (ln := proc.stdout.readline()):
+            lines.append(ln)
     finally:
         proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=60)
+    out = "".join(lines) + out
     assert proc.returncode == 0, out
     assert f"MLflow UI: http://127.0.0.1:{port}" in out and f"gdwm ui: http://127.0.0.1:{dash}/" in out
     assert _refused(port) and _refused(dash)  # both servers and MLflow's workers are gone with it
