@@ -60,7 +60,7 @@ endef
 # Every test, on both cores of the 2-core box the suite is sized for: pytest-xdist workers take whole files (and files
 # sharing a session fixture together), the longest first (tests/conftest.py). TEST_WORKERS=1 runs them one by one.
 TEST_WORKERS ?= 2
-XDIST = $(if $(filter-out 0 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadgroup --no-loadscope-reorder,-p no:xdist)
+XDIST = $(if $(filter-out 0 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder,-p no:xdist)
 
 test: setup ## run every test (the long end-to-end ones too) on local Ray, 2 pytest workers
 	$(call run_pytest,$(XDIST))

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = [pytest.mark.heavy(6), pytest.mark.xdist_group("demo"), pytest.mark.timeout(3000)]
+pytestmark = [pytest.mark.heavy(6), pytest.mark.timeout(3000)]
 
 CELL = re.compile(r"^\**(?:<u>)?(-?\d+\.\d+) \[")
 

@@ -12,7 +12,7 @@ import pytest
 from gdwm.cache import Cache
 from tests.pipelines.conftest import gdwm_cli as _gdwm
 
-pytestmark = [pytest.mark.heavy(3), pytest.mark.xdist_group("tiny_run")]
+pytestmark = pytest.mark.heavy(3)
 
 REPO = Path(__file__).resolve().parents[2]
 

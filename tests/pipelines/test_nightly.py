@@ -10,7 +10,7 @@ import sys
 import mlflow
 import pytest
 
-pytestmark = [pytest.mark.heavy(10), pytest.mark.xdist_group("demo"), pytest.mark.timeout(3600)]
+pytestmark = [pytest.mark.heavy(10), pytest.mark.timeout(3600)]
 
 
 def _regress(work, *args: str) -> subprocess.CompletedProcess:

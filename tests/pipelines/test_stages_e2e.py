@@ -13,7 +13,7 @@ import pytest
 
 from gdwm.cache import Cache
 
-pytestmark = [pytest.mark.heavy(4), pytest.mark.xdist_group("tiny_run")]
+pytestmark = pytest.mark.heavy(4)
 
 
 # the real understanding branch from scratch, on the session's tiny run (tests/pipelines/conftest.py)
