@@ -26,6 +26,7 @@ def _unit(nodeid: str) -> str:
     return _UNIT.get(path, path)
 
 
+@pytest.hookimpl(optionalhook=True)  # xdist's hook: unknown with -p no:xdist (make test TEST_WORKERS=1)
 def pytest_xdist_make_scheduler(config: pytest.Config, log):
     """``--dist loadfile`` with the files of ``TOGETHER`` as one unit each. (xdist's own ``loadgroup`` would do it
     with marks, but under pytest 9 its group suffix no longer reaches the node ids it schedules by.)"""

@@ -343,8 +343,8 @@ class MetricCheck:
     """Which way is better."""
     tolerance: Any = 0.0
     """Allowed worsening before it is a regression: an amount (``1.0``), or ``{sigma: K}``: K standard deviations of
-    the difference of the two seed means, from the baseline's spread ``s`` over its seeds,
-    ``K * s * sqrt(1/n_baseline + 1/n_now)`` (the benchmark and its baseline need >= 2 seeds)."""
+    the difference of the two seed means, Welch's ``K * sqrt(s_b^2/n_b + s_now^2/n_now)`` from both runs' spreads over
+    their seeds (``K * s_b * sqrt(1/n_b + 1/n_now)`` when now ran one seed; the baseline needs >= 2 seeds)."""
     relative: bool = False
     """A numeric ``tolerance`` is a fraction of the baseline value instead of an absolute amount."""
     test: CheckTest = CheckTest.none

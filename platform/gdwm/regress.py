@@ -8,8 +8,9 @@ compared value is their mean), the metrics with their tolerances, and performanc
 the entry-point group ``gdwm.benchmarks``) whose figures become metrics ``perf/<bench>/<metric>``.
 
 A tolerance is a fixed amount (``tolerance: 1.0``, or a fraction with ``relative: true``), or the baseline's own
-noise: ``tolerance: {sigma: 3}`` allows 3 standard deviations of the compared difference, the baseline's spread
-over its seeds scaled to a difference of two means (``s * sqrt(1/n_baseline + 1/n_now)``). With
+noise: ``tolerance: {sigma: 3}`` allows 3 standard deviations of the compared difference of two means over seeds,
+Welch's ``sqrt(s_b^2/n_b + s_now^2/n_now)`` from both runs' spreads (``s_b * sqrt(1/n_b + 1/n_now)`` when now ran one
+seed). With
 ``test: bootstrap`` a worsening is a regression only if a paired bootstrap over the held-out samples (both runs'
 per-sample predictions, combined over seeds) finds it significant, beyond the tolerance.
 
@@ -80,10 +81,7 @@ def check(
         b, n = (baseline or {}).get(c.name), now.get(c.name)
         arrow = " ↑" if c.direction == Direction.higher else " ↓"
         if c.sigma is not None:
-            spread = (baseline or {}).get(f"std/{c.name}")
-            if spread is not None:  # the std of a difference of two means, estimated from the baseline's seeds
-                n_b, n_n = (baseline or {}).get(f"n/{c.name}", 1.0), now.get(f"n/{c.name}", 1.0)
-                spread *= math.sqrt(1 / n_b + 1 / n_n)
+            spread = _difference_spread(baseline or {}, now, c.name)
             tol = c.sigma * spread if spread is not None else math.nan
             shown = f"{c.sigma:g}σ" + (
                 f" = {fmt_significant(tol, 3)}" if spread is not None else " (no spread)" if b is not None else ""
@@ -112,6 +110,22 @@ def check(
                         verdict = "ok (not significant)"
         rows.append(Row(c.name, b, n, shown + arrow, verdict, None if math.isnan(tol) else tol))
     return rows
+
+
+def _difference_spread(baseline: dict[str, float], now: dict[str, float], metric: str) -> float | None:
+    """The standard error of (now's mean - the baseline's mean) over seeds: Welch's, from both runs' spreads, when
+    both ran >= 2 seeds; from the baseline's spread alone when now ran one. None when the baseline has no spread.
+
+    Both runs' seeds estimate the training noise: three seeds alone give a spread that is half the true one about
+    one time in five, and a gate scaled by it alone would fire on other seeds of the same model that often."""
+    s_b = baseline.get(f"std/{metric}")
+    if s_b is None:
+        return None
+    n_b, n_n = baseline.get(f"n/{metric}", 1.0), now.get(f"n/{metric}", 1.0)
+    s_n = now.get(f"std/{metric}")
+    if s_n is None or n_n < 2:
+        return s_b * math.sqrt(1 / n_b + 1 / n_n)
+    return math.sqrt(s_b**2 / n_b + s_n**2 / n_n)
 
 
 def failed(rows: list[Row]) -> list[Row]:

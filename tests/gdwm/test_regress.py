@@ -97,13 +97,13 @@ def test_seeded_baseline_records_mean_spread_and_samples(seeded):
 
 
 def test_other_seeds_of_the_same_model_do_not_fire(seeded):
-    # seeds 3-5 of the same model: the mean of plan_acc drops by 2.7 std of a difference of two 3-seed means
+    # seeds 3-5 of the same model: the mean of plan_acc drops by 2.5 std of a difference of two 3-seed means
     r = _regress(seeded, "benchmark=toy_seeds", "seeds=[3,4,5]")
     _ok(r)
     base, now = _acc(4, (0, 1, 2)), _acc(4, (3, 4, 5))
-    sigma = statistics.stdev(base) * (1 / 3 + 1 / 3) ** 0.5
+    sigma = (statistics.variance(base) / 3 + statistics.variance(now) / 3) ** 0.5  # Welch's, from both runs
     shift = (statistics.fmean(base) - statistics.fmean(now)) / sigma
-    assert 2.5 < shift < 3  # a drop a fixed tolerance of 1.0 would have called a regression
+    assert 2.4 < shift < 3  # a drop a fixed tolerance of 1.0 would have called a regression
     assert "REGRESSION" not in r.stdout and "mean of seeds [3, 4, 5]" in r.stdout
     assert f"3σ = {3 * sigma:.3g}" in r.stdout
 
@@ -125,16 +125,27 @@ def test_check_with_sigma_and_bootstrap():
         MetricCheck("d", Direction.higher, {"sigma": 2}),
     ]
     base = {"a": 10.0, "std/a": 1.0, "n/a": 2.0, "b": 5.0, "c": 1.0, "d": 3.0}
-    now = {"a": 7.5, "n/a": 2.0, "b": 4.0, "c": 1.5, "d": 3.0}
+    now = {"a": 7.5, "n/a": 1.0, "b": 4.0, "c": 1.5, "d": 3.0}
     cis = {"b": (-2.0, 0.5), "c": (0.2, 0.8)}  # b: not significant; c: MAE significantly up
     rows = {r.metric: r for r in check(checks, base, now, cis.get)}
-    # sigma of a difference of two 2-seed means: 1.0 x sqrt(1/2 + 1/2); 2.5 worse > 2 x 1.0
-    assert rows["a"].verdict == "REGRESSION" and rows["a"].tolerance == "2σ = 2 ↑"
+    # one seed now: sigma of the difference from the baseline's spread, 1.0 x sqrt(1/2 + 1/1); 2.5 worse > 2 x 1.22
+    assert rows["a"].verdict == "REGRESSION" and rows["a"].tolerance == "2σ = 2.45 ↑"
     assert rows["b"].verdict == "ok (not significant)"
     assert rows["c"].verdict == "REGRESSION"
     assert rows["d"].verdict == "no spread"  # the baseline had one seed: sigma is undefined, and that fails
     assert [r.metric for r in failed(list(rows.values()))] == ["a", "c", "d"]
     assert check([MetricCheck("b", test=CheckTest.bootstrap)], {"b": 2.0}, {"b": 1.0})[0].verdict == "untestable"
+
+
+def test_sigma_counts_both_runs_spreads():
+    # Welch's standard error of the difference of two 3-seed means: sqrt(1^2/3 + 3^2/3) = 1.826; 3 of it = 5.48
+    a = [MetricCheck("a", Direction.lower, {"sigma": 3})]
+    base = {"a": 10.0, "std/a": 1.0, "n/a": 3.0}
+    (row,) = check(a, base, {"a": 15.0, "std/a": 3.0, "n/a": 3.0})
+    assert row.verdict == "ok" and row.allowed == pytest.approx(3 * (1 / 3 + 9 / 3) ** 0.5)
+    # the baseline's spread alone (1 x sqrt(2/3) x 3 = 2.45) would have called 5 worse a regression
+    assert check(a, base, {"a": 15.0, "n/a": 1.0})[0].verdict == "REGRESSION"
+    assert check(a, base, {"a": 15.6, "std/a": 3.0, "n/a": 3.0})[0].verdict == "REGRESSION"
 
 
 @pytest.mark.parametrize(

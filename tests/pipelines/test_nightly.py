@@ -46,11 +46,11 @@ def _fired(r: subprocess.CompletedProcess) -> list[str]:
 def test_other_seeds_of_the_baseline_model_pass(baselined):
     r = _regress(baselined, "seeds=[3,4,5]")
     assert r.returncode in (0, 1), r.stderr[-3000:]
-    assert _fired(r) == [] and "mean of seeds [3, 4, 5]" in r.stdout
+    assert _fired(r) == [] and "mean of seeds [3, 4, 5]" in r.stdout, r.stdout[-4000:]
 
 
 def test_a_clearly_worse_model_fires(baselined):
     # no warm-up of the tiny LLM: it has not learnt the answer formats (malformed boxes, decisions and positions)
     r = _regress(baselined, "model.llm.pretrain_steps=0")
     assert r.returncode == 1, r.stdout[-3000:] + r.stderr[-3000:]
-    assert "nuinteract/avg" in _fired(r) and "(tolerance 3σ = " in r.stderr
+    assert "nuinteract/avg" in _fired(r) and "(tolerance 3σ = " in r.stderr, r.stdout[-4000:]
