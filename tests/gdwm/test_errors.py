@@ -118,7 +118,10 @@ def test_a_disk_that_fills_mid_run(small_disk, tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     statuses = Counter(x.info.status for x in toy.runs() + toy.runs("run"))
     assert "RUNNING" not in statuses and statuses["FINISHED"] >= 7
-    assert Path(toy.root / "executions.log").read_text().split()[0] in ("evaluate_qa", "evaluate_gen")
+    # only what the full disk left undone runs again: evaluate_qa and what had not finished beside it (diffusion
+    # runs beside lora and evaluate_qa, so whether it finished before the disk filled is the scheduler's choice)
+    again = {line.split()[0] for line in (toy.root / "executions.log").read_text().splitlines()}
+    assert "evaluate_qa" in again and again <= {"evaluate_qa", "diffusion", "evaluate_gen"}, again
 
 
 def test_a_scene_filling_the_node_s_memory_ends_the_run_with_one_line_naming_stage_and_scene(tmp_path):
