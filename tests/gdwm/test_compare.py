@@ -18,11 +18,12 @@ from gdwm.compare.command import settings
 from gdwm.compare.layout import ColumnConfig, CompareArgs, Direction, LayoutConfig, default_direction, resolve_columns
 from gdwm.compare.render import tex_escape, to_csv, to_latex, to_markdown, to_rich
 from gdwm.compare.report import error_bar, html_report, improvement
-from gdwm.compare.runs import Row, SelectionError, Trial, select, training_curves
+from gdwm.compare.runs import Row, SelectionError, Trial, linked_runs, select, training_curves
 from gdwm.compare.samples import load_samples, scorer
 from gdwm.compare.stats import Settings
 from gdwm.compare.table import BEST, SECOND, build_table, normalise
 from gdwm.config import load_config
+from gdwm.tracking import TrackingBackend
 from tests.gdwm.compare_runs import CORRECT, LOSS, N_SAMPLES, ROWS, log_store
 
 LAYOUT = LayoutConfig(
@@ -353,6 +354,55 @@ def test_training_curves_from_the_first_trials_stage_runs(store):
     rows = select(store.backend(), sweep="abl").rows
     assert training_curves(store.backend(), rows[0]) == {"lora/loss": list(enumerate(LOSS))}  # no system/*, no 1-step
     assert training_curves(store.backend(), rows[1]) == {}
+
+
+def _linked_sweep(workdir, n: int) -> TrackingBackend:
+    """A sweep of ``n`` one-seed rows as the runner logs them: each trial links its stage runs (children of the
+    sweep) with ``gdwm.stage_run.<stage>``; the last trial links none (its stage run names it by ``gdwm.trial``)."""
+    b = TrackingBackend(f"sqlite:///{workdir}/mlflow.db", "linked", str(workdir / "mlartifacts"))
+    b.system_metrics_interval_s = 0
+    sweep = b.create_run("sweep-big", {"gdwm.kind": "sweep", "gdwm.sweep": "big"})
+    for i in range(n):
+        tags = {"gdwm.sweep": "big", "gdwm.row": f"r{i}", "gdwm.trial_index": str(i), "gdwm.seeds": "0"}
+        row = b.create_run(f"row-{i}", tags | {"gdwm.kind": "row"}, sweep)
+        trial = b.create_run(f"trial-{i}", tags | {"gdwm.kind": "trial", "gdwm.seed": "0"}, row)
+        stage = b.create_run(f"lora-{i}", {"gdwm.stage": "lora", "gdwm.kind": "stage"} | (
+            {"gdwm.trial": trial} if i == n - 1 else {}), sweep)  # fmt: skip
+        for step in range(3):
+            b.log_metrics(stage, {"loss": float(i + step)}, step=step)
+        b.end_run(stage)
+        if i < n - 1:
+            b.set_tags(trial, {"gdwm.stage_run.lora": stage})
+        b.log_metrics(trial, {"nuinteract/plan_acc": float(i)})
+        b.end_run(trial)
+        b.end_run(row)
+    b.end_run(sweep)
+    return b
+
+
+def test_a_sweeps_rows_trials_and_curves_take_the_same_searches_for_3_rows_as_for_12(tmp_path):
+    """Rows' trials come from one search for the sweep, linked stage runs from one search per 100: what compare
+    and the dashboard ask the store does not grow with the rows (a team's server answers each request in tens of
+    ms). The curves are those each row's trial links, or the runs naming the trial (the unlinked last row)."""
+    searches = {}
+    for n in (3, 12):
+        (tmp_path / str(n)).mkdir()
+        b = _linked_sweep(tmp_path / str(n), n)
+        calls = []
+
+        def counted(*a, _search=b.search_runs, _calls=calls, **kw):
+            _calls.append(a[0] if a else kw.get("filter_string"))
+            return _search(*a, **kw)
+
+        b.search_runs = counted
+        rows = select(b, sweep="big").rows
+        linked = linked_runs(b, rows, "args.sweep=big")
+        curves = {r.label: training_curves(b, r, linked) for r in rows}
+        searches[n] = len(calls)
+        assert [len(r.trials) for r in rows] == [1] * n
+        assert curves == {f"r{i}": {"lora/loss": [(s, float(i + s)) for s in range(3)]} for i in range(n)}
+        assert curves == {r.label: training_curves(b, r) for r in rows}  # as without the batch, a request a run
+    assert searches[3] == searches[12] == 7, searches  # sweep, its children, its trials, linked x2, unlinked x2
 
 
 def test_html_report_cells_error_bars_legend_and_links(table, store):

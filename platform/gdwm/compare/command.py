@@ -17,7 +17,7 @@ from gdwm.compare.layout import CompareArgs, Direction, Format, LayoutConfig
 from gdwm.compare.references import Reference, ReferencesError, load_references, log_references, merge
 from gdwm.compare.render import to_csv, to_latex, to_markdown, to_rich
 from gdwm.compare.rounding import fmt as fmt_value
-from gdwm.compare.runs import Selection, SelectionError, select, training_curves
+from gdwm.compare.runs import Selection, SelectionError, linked_runs, select, training_curves
 from gdwm.compare.samples import load_samples
 from gdwm.compare.stats import Settings
 from gdwm.compare.table import Table, build_table
@@ -233,5 +233,7 @@ def _render(fmt: Format, table, base: int, backend: TrackingBackend | None, cfg:
         return to_csv(table)
     from gdwm.compare.report import html_report  # matplotlib only when a report is asked for
 
-    curves = {r.run_id: training_curves(backend, r) for r in table.rows if r.run_id and backend is not None}
+    rows = [r for r in table.rows if r.run_id and backend is not None]
+    linked = linked_runs(backend, rows, selector) if rows else {}
+    curves = {r.run_id: training_curves(backend, r, linked) for r in rows}
     return html_report(table, base, curves, ui_url(cfg), selector, cfg.tracking.uri)

@@ -41,6 +41,10 @@ PROTOCOL_PARAM = "protocol/"
 PROXY_PARAM = "proxy/"
 
 
+_ALL = 1_000_000
+"""``max_results`` of a search that must return every match (a sweep's rows and trials; the default stops at 1000)."""
+
+
 class SelectionError(Exception):
     """A selector that matches nothing or names an unknown run; the message names the selector."""
 
@@ -165,14 +169,19 @@ def _trial(r: dict) -> Trial:
     return Trial(r["run_id"], number, r["status"], dict(r["metrics"]), dict(r["tags"]), params=dict(r["params"]))
 
 
-def _row(backend: TrackingBackend, r: dict, factor_params: list[str], selector: str) -> Row:
+def _row(
+    backend: TrackingBackend, r: dict, factor_params: list[str], selector: str, known: list[dict] | None = None
+) -> Row:
+    """The row of run ``r`` with its trials: ``known`` (found by one search for a whole sweep), else its children."""
     tags = r["tags"]
     factors = {k[len(FACTOR_PREFIX) :]: v for k, v in tags.items() if k.startswith(FACTOR_PREFIX)}
     factors |= {k: r["params"][k] for k in factor_params if k in r["params"] and k not in factors}
     label = tags.get("gdwm.row") or r["name"] or r["run_id"][:8]
     children = []
-    if tags.get("gdwm.kind") in ROW_KINDS:
-        children = _search(backend, f"tags.`{MLFLOW_PARENT_RUN_ID}` = '{r['run_id']}'", selector)
+    if known:
+        children = known
+    elif tags.get("gdwm.kind") in ROW_KINDS:
+        children = _search(backend, f"tags.`{MLFLOW_PARENT_RUN_ID}` = '{r['run_id']}'", selector, max_results=_ALL)
         children = [c for c in children if c["tags"].get("gdwm.kind") == TRIAL_KIND]
     trials = sorted(map(_trial, children), key=lambda t: (t.seed is None, t.seed or 0)) or [_trial(r)]
     seeds = [s for s in tags.get("gdwm.seeds", "").split(",") if s.strip()] if children else []
@@ -229,6 +238,7 @@ def select(
         raise SelectionError(f"give one selector, not {' and '.join(given)}")
     factor_params = list(factor_params or [])
     sweep_run_id = None
+    known: dict[str, list[dict]] = {}
     if sweep:
         selector = f"args.sweep={sweep}"
         parents = _search(
@@ -240,9 +250,15 @@ def select(
         if not parents:
             raise SelectionError(f"{selector}: no sweep named '{sweep}' in experiment '{backend.experiment}'")
         sweep_run_id = parents[0]["run_id"]
-        found = _search(backend, f"tags.`{MLFLOW_PARENT_RUN_ID}` = '{sweep_run_id}'", selector)
+        found = _search(backend, f"tags.`{MLFLOW_PARENT_RUN_ID}` = '{sweep_run_id}'", selector, max_results=_ALL)
         kinds = ("row", TRIAL_KIND, REFERENCE_KIND)
         found = _order(newest_per_row([r for r in found if r["tags"].get("gdwm.kind") in kinds]))
+        # every row's trials in one search (MLflow filters tags by =, not IN): the trials of this sweep's name, by
+        # parent; a row none of them names (a trial without the tag) searches its own children
+        trials = _search(backend, f"tags.`gdwm.kind` = '{TRIAL_KIND}' and tags.`gdwm.sweep` = '{sweep}'", selector,
+                         max_results=_ALL)  # fmt: skip
+        for t in trials:
+            known.setdefault(t["tags"].get(MLFLOW_PARENT_RUN_ID, ""), []).append(t)
         name = sweep
     elif runs:
         selector = f"args.runs={list(runs)}"
@@ -272,20 +288,28 @@ def select(
             f"{selector}: no runs tagged gdwm.kind in {list(ROW_KINDS)} in experiment '{backend.experiment}' "
             f"of {backend.uri}"
         )
-    rows = [_row(backend, r, factor_params, selector) for r in found]
+    rows = [_row(backend, r, factor_params, selector, known.get(r["run_id"])) for r in found]
     read_labels(backend, rows, selector)
     return Selection(name, selector, rows, sweep_run_id)
 
 
-def read_labels(backend: TrackingBackend, rows: list[Row], selector: str, chunk: int = 100) -> None:
-    """Fill ``labels`` and ``proxy`` of every trial from the ``protocol/`` and ``proxy/`` params of the stage runs
-    it links (one search per ``chunk`` linked runs)."""
-    trials = [t for r in rows for t in r.trials]
-    links = sorted({v for t in trials for k, v in t.tags.items() if k.startswith(STAGE_LINK_PREFIX)})
-    params: dict[str, dict[str, str]] = {}
+def linked_runs(backend: TrackingBackend, rows: list[Row], selector: str, chunk: int = 100) -> dict[str, dict]:
+    """run id -> run of every stage run the rows' trials link (``gdwm.stage_run.<stage>``): one search per
+    ``chunk`` of them, not a request each."""
+    tags = [t.tags for r in rows for t in r.trials] + [r.tags for r in rows]
+    links = sorted({v for ts in tags for k, v in ts.items() if k.startswith(STAGE_LINK_PREFIX)})
+    found: dict[str, dict] = {}
     for i in range(0, len(links), chunk):
         ids = ", ".join(f"'{x}'" for x in links[i : i + chunk])
-        params |= {r["run_id"]: r["params"] for r in _search(backend, f"attributes.run_id IN ({ids})", selector)}
+        found |= {r["run_id"]: r for r in _search(backend, f"attributes.run_id IN ({ids})", selector)}
+    return found
+
+
+def read_labels(backend: TrackingBackend, rows: list[Row], selector: str) -> None:
+    """Fill ``labels`` and ``proxy`` of every trial from the ``protocol/`` and ``proxy/`` params of the stage runs
+    it links."""
+    trials = [t for r in rows for t in r.trials]
+    params = {run_id: r["params"] for run_id, r in linked_runs(backend, rows, selector).items()}
     for t in trials:
         for key, run_id in t.tags.items():
             if key.startswith(STAGE_LINK_PREFIX):
@@ -296,8 +320,17 @@ def read_labels(backend: TrackingBackend, rows: list[Row], selector: str, chunk:
                         t.proxy[name[len(PROXY_PARAM) :]] = value
 
 
-def stage_runs(backend: TrackingBackend, run_id: str, tags: dict[str, str]) -> list[dict]:
-    """The stage runs a row or trial used: its children, runs tagged ``gdwm.trial=<it>``, and runs it links."""
+def stage_runs(
+    backend: TrackingBackend, run_id: str, tags: dict[str, str], linked: dict[str, dict] | None = None
+) -> list[dict]:
+    """The stage runs a row or trial used: its children, runs tagged ``gdwm.trial=<it>``, and runs it links.
+
+    With ``linked`` (:func:`linked_runs` of its rows), a run that links its stages (every finished trial links all
+    of them, executed or cached) takes them from there, and a sweep's row run (its stage runs are its trials') has
+    none: no request at all."""
+    links = [v for k, v in tags.items() if k.startswith(STAGE_LINK_PREFIX)]
+    if linked is not None and (links or tags.get("gdwm.kind") == "row"):
+        return [linked[x] for x in dict.fromkeys(links) if x in linked and STAGE_TAG in linked[x]["tags"]]
     found: dict[str, dict] = {}
     for f in (f"tags.`{MLFLOW_PARENT_RUN_ID}` = '{run_id}'", f"tags.`gdwm.trial` = '{run_id}'"):
         found |= {r["run_id"]: r for r in backend.search_runs(f)}
@@ -310,13 +343,16 @@ def stage_runs(backend: TrackingBackend, run_id: str, tags: dict[str, str]) -> l
     return [r for r in found.values() if STAGE_TAG in r["tags"]]
 
 
-def training_curves(backend: TrackingBackend, row: Row) -> dict[str, list[tuple[int, float]]]:
+def training_curves(
+    backend: TrackingBackend, row: Row, linked: dict[str, dict] | None = None
+) -> dict[str, list[tuple[int, float]]]:
     """``<stage>/<metric>`` -> (step, value) of every metric a stage run logged at more than one step: those of the
-    row run's stage runs, else of its first trial (lowest seed) that has any, as a row has one line per plot."""
+    row run's stage runs, else of its first trial (lowest seed) that has any, as a row has one line per plot.
+    ``linked``: :func:`linked_runs` of the rows (see :func:`stage_runs`)."""
     owners = [(row.run_id, row.tags)] + [(t.run_id, t.tags) for t in row.trials if t.run_id != row.run_id]
     for run_id, tags in owners:
         curves = {}
-        for r in stage_runs(backend, run_id, tags):
+        for r in stage_runs(backend, run_id, tags, linked):
             for key in sorted(r["metrics"]):
                 if key.startswith("system/"):
                     continue

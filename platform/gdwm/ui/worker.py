@@ -122,9 +122,10 @@ def run(job: dict[str, Any]) -> None:
     emit("effects", effects=effects(table, settings(args)))
     if job.get("report"):
         from gdwm.compare.report import html_report
-        from gdwm.compare.runs import training_curves
+        from gdwm.compare.runs import linked_runs, training_curves
 
-        curves = {r.run_id: training_curves(backend, r) for r in table.rows}
+        linked = linked_runs(backend, table.rows, result.selection.selector)
+        curves = {r.run_id: training_curves(backend, r, linked) for r in table.rows}
         html = html_report(
             table, result.base, curves, job.get("mlflow_url") or "", result.selection.selector, cfg.tracking.uri
         )
