@@ -60,6 +60,9 @@ def cache_state(cache) -> str:
     manifests = 0
     for info in sorted(top, key=lambda i: i.base_name):
         name = info.base_name
+        if name == CACHE_MARKER and info.type == pafs.FileType.File:
+            # another process (a scene actor beside this one, another driver) marked the root between our two reads
+            return "marked"
         if info.type != pafs.FileType.Directory or not (name in _CACHE_DOT_DIRS or _STAGE_RE.fullmatch(name)):
             raise NotOurs(f"{where}: not a gdwm cache ({name} is not gdwm's, and there is no {CACHE_MARKER})")
         if name in _CACHE_DOT_DIRS:

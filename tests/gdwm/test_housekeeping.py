@@ -255,6 +255,29 @@ def test_a_cache_of_an_older_gdwm_is_recognised_by_its_layout_and_marked(store, 
     assert rc == 2 and "not a gdwm cache (no .gdwm-cache and no readable gdwm manifest in lora)" in err
 
 
+def test_a_root_marked_by_another_process_between_the_marker_check_and_the_listing_is_ours(tmp_path):
+    """Scene actors publish at once into a root that holds only gdwm's launch locks (a first launch that died before
+    its first entry): one writes the marker after another looked for it and before that one lists the root. The
+    listing shows the marker: the root is gdwm's (it was refused as 'not a gdwm cache (.gdwm-cache is not gdwm's')."""
+    from gdwm.owned import CACHE_MARKER, cache_state, own_cache
+
+    root = tmp_path / "cache"
+    (root / ".locks" / "launch").mkdir(parents=True)
+    cache = Cache(root)
+    real = cache.fs.get_file_info
+
+    def marked_meanwhile(arg):
+        out = real(arg)
+        if isinstance(arg, str) and arg.endswith(CACHE_MARKER):
+            (root / CACHE_MARKER).write_text('{"gdwm": "cache"}')  # the other actor, right after our check
+        return out
+
+    cache.fs = type("RacingFS", (), {"get_file_info": staticmethod(marked_meanwhile), "__getattr__":
+                                     lambda self, name: getattr(Cache(root).fs, name)})()  # fmt: skip
+    assert cache_state(cache) == "marked"
+    assert own_cache(cache, create=True) == "marked"
+
+
 def test_a_symlink_in_an_entry_is_neither_sized_nor_followed_by_gc(store, tmp_path):
     outside = tmp_path / "outside"
     outside.mkdir()
