@@ -25,6 +25,7 @@ import logging
 import os
 import shutil
 import tempfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
@@ -148,10 +149,14 @@ class SimCluster:
 
     def describe_placement(self) -> str:
         """One line: ``sim placement: sim-worker-1: RayTrainWorker x2, SceneWorker x2; sim-worker-2: ...``."""
-        try:
-            nodes = self.placement()
-        except Exception as e:  # the head already gone (a driver interrupted mid-teardown)
-            return f"sim placement: unknown ({e!r})"
+        for attempt in range(3):
+            try:
+                nodes = self.placement()
+                break
+            except Exception as e:  # the head already gone (a driver interrupted mid-teardown), or a slow GCS reply
+                if attempt == 2:
+                    return f"sim placement: unknown ({e!r})"
+                time.sleep(1.0)
         placed = [
             f"{node}: " + ", ".join(f"{cls} x{n}" for cls, n in sorted(counts.items()))
             for node, counts in nodes.items()

@@ -8,6 +8,7 @@ cluster): per-scene stages run in ``SceneWorker`` actors, training groups in ``R
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -98,6 +99,7 @@ def test_two_node_sim_places_gpu_actors_on_both_nodes_and_refuses_a_node_without
 
 def _placement(stdout: str) -> dict[str, dict[str, int]]:
     line = next(ln for ln in stdout.splitlines() if ln.startswith("sim placement: "))
+    assert re.fullmatch(r"sim placement: [\w-]+: \w+ x\d+(, \w+ x\d+)*(; [\w-]+: \w+ x\d+(, \w+ x\d+)*)*", line), line
     out = {}
     for part in line.removeprefix("sim placement: ").split("; "):
         node, _, actors = part.partition(": ")
