@@ -3,15 +3,18 @@
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 from collections import Counter
+from pathlib import Path
 
 import mlflow
 import pyarrow.parquet as pq
 import pytest
 
 from gdwm.cache import Cache
+from tests.pipelines.conftest import TINY_RUN
 
 pytestmark = pytest.mark.heavy(4)
 
@@ -98,31 +101,46 @@ def test_a_rerun_is_all_cache_hits_and_lora_from_the_zoo_trains_nothing(tiny_run
     assert world[0] == world[1] and len(client.search_model_versions("name LIKE 'gdwm-%'")) == 2
 
 
-TINY = [
-    "stage/reconstruct=tiny",
-    "stage/distill=tiny",
-    "stage/tokenizer=tiny",
-    "stage/lora=tiny",
-    "stage/diffusion_vae=tiny",
-    "stage/diffusion=tiny",
-    "stage/evaluate_gen=tiny",
-    "data.num_scenes=2",
-    "data.width=64",
-    "data.height=36",
-]
+GEN = ["stage/diffusion_vae=tiny", "stage/diffusion=tiny", "stage/evaluate_gen=tiny"]
+
+
+@pytest.fixture(scope="module")
+def gen(tiny_run, tmp_path_factory) -> tuple[Path, list[str]]:
+    """A copy of the tiny run's workdir (a workdir is relocatable) and the overrides of the generation branch on it:
+    lora -> diffusion -> evaluate_gen over the tiny run's data, reconstruction, distillation, LLM, tokenizer and
+    LoRA, which are cache hits there. The copy leaves the tiny run's own workdir as the other tests read it."""
+    work = tmp_path_factory.mktemp("gen") / "w"
+    shutil.copytree(tiny_run.work, work, symlinks=True)
+    args = [
+        f"workdir={work}",
+        f"data.root={work / 'data'}",
+        *(a for a in TINY_RUN if not a.startswith("targets=")),
+        *GEN,
+    ]
+    return work, args
 
 
 def _gdwm(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "gdwm", *args], capture_output=True, text=True, timeout=timeout)
 
 
-def test_diffusion_stage_then_generate_and_edit(tmp_path):
+def _stage_runs(client: mlflow.MlflowClient, exp_id: str) -> Counter:
+    return Counter(x.data.tags.get("gdwm.stage") for x in client.search_runs([exp_id]) if "gdwm.stage" in x.data.tags)
+
+
+def test_diffusion_stage_then_generate_and_edit(gen):
     import json
 
     from pipelines.data.reader import GSQADataset
 
-    r = _gdwm("run", f"workdir={tmp_path}", "targets=[evaluate_gen]", *TINY)
+    tmp_path, args = gen
+    client = mlflow.MlflowClient(f"sqlite:///{tmp_path.resolve()}/mlflow.db")
+    exp = client.get_experiment_by_name("gdwm")
+    before = _stage_runs(client, exp.experiment_id)
+    r = _gdwm("run", *args, "targets=[evaluate_gen]")
     assert r.returncode == 0, r.stderr[-4000:]
+    # the understanding branch's stages were the tiny run's cache hits: only the generation branch ran
+    assert _stage_runs(client, exp.experiment_id) - before == Counter(["diffusion_vae", "diffusion", "evaluate_gen"])
     cache = Cache(tmp_path / "cache")
     (entry,) = cache.entries("diffusion")
     assert {"unet/config.json", "vae/config.json", "rgbd.json", "null_token.pt", "metrics.json"} <= {
@@ -134,12 +152,11 @@ def test_diffusion_stage_then_generate_and_edit(tmp_path):
     metrics = json.loads((tmp_path / "cache" / "evaluate_gen" / ev.key[:2] / ev.key / "metrics.json").read_text())
     assert 0 < metrics["gen/shift_1m/psnr"] < 60 and metrics["gen/shift_-1m/depth_absrel"] >= 0
     assert metrics["count/heldout_views"] == 6  # 1 val scene x 2 frames x (2 shifts + 1 s ahead)
-    client = mlflow.MlflowClient(f"sqlite:///{tmp_path.resolve()}/mlflow.db")
-    exp = client.get_experiment_by_name("gdwm")
-    (parent,) = client.search_runs([exp.experiment_id], "tags.`gdwm.kind` = 'run'")
+    (parent,) = client.search_runs([exp.experiment_id], "tags.`gdwm.kind` = 'run'", max_results=1,
+                                   order_by=["attributes.start_time DESC"])  # fmt: skip
     assert parent.data.metrics["gen/future_1s/psnr"] == metrics["gen/future_1s/psnr"]
 
-    g = _gdwm("generate", f"workdir={tmp_path}", *TINY, "args.scene=scene-0001", "args.frame=1",
+    g = _gdwm("generate", *args, "args.scene=scene-0001", "args.frame=1",
               "args.shifts_m=[-1,1]", "args.horizons_s=[1]")  # fmt: skip
     assert g.returncode == 0, g.stderr[-4000:]
     out = tmp_path / "generated" / "scene-0001_001_CAM_FRONT"
@@ -150,10 +167,10 @@ def test_diffusion_stage_then_generate_and_edit(tmp_path):
     assert "gen/shift_1m/psnr" in g.stdout
 
     # remove the biggest vehicle in view: the edited region changes, the rest of the picture does not
-    frame = GSQADataset(tmp_path / "data" / "synthetic_mini").scene("scene-0001").frame(1)
+    frame = GSQADataset(tmp_path / "data").scene("scene-0001").frame(1)  # data.root of the tiny run
     boxes = [b for b in frame.boxes2d("CAM_FRONT") if "ped" not in b["instance_id"]]
     vehicle = max(boxes, key=lambda b: (b["box"][2] - b["box"][0]) * (b["box"][3] - b["box"][1]))["instance_id"]
-    e = _gdwm("edit", f"workdir={tmp_path}", *TINY, "args.scene=scene-0001", "args.frame=1", "args.frames=2",
+    e = _gdwm("edit", *args, "args.scene=scene-0001", "args.frame=1", "args.frames=2",
               f"args.edit=Remove vehicle {vehicle} from the scene.")  # fmt: skip
     assert e.returncode == 0, e.stderr[-4000:]
     (edit_dir,) = (tmp_path / "edits").iterdir()
@@ -162,7 +179,7 @@ def test_diffusion_stage_then_generate_and_edit(tmp_path):
     assert report["mean_abs_change_in_edited_region"] > 2 * report["mean_abs_change_outside"]
     assert (edit_dir / "edited.mp4").is_file() and len(list(edit_dir.glob("edited_00?.png"))) == 2
 
-    bad = _gdwm("edit", f"workdir={tmp_path}", *TINY, "args.scene=scene-0001", "args.frame=1",
+    bad = _gdwm("edit", *args, "args.scene=scene-0001", "args.frame=1",
                 "args.edit=Remove vehicle scene-0001-car-99 from the scene.")  # fmt: skip
     assert bad.returncode == 1
     assert "scene-0001/frame_001: no vehicle with instance id 'scene-0001-car-99'" in bad.stderr
@@ -173,14 +190,17 @@ def test_diffusion_stage_then_generate_and_edit(tmp_path):
     assert len(runs) == 1 and runs[0].data.metrics["edit/change_inside"] == report["mean_abs_change_in_edited_region"]
 
 
-def test_evaluate_gen_on_llm_predicted_trajectories(tmp_path):
-    """Future targets placed by the trajectory the LoRA'd LLM predicts from the 4 history frames."""
+def test_evaluate_gen_on_llm_predicted_trajectories(gen):
+    """Future targets placed by the trajectory the LoRA'd LLM predicts from the 4 history frames (in the generation
+    branch's workdir: the diffusion model is a cache hit when the test above made it)."""
     import json
 
+    tmp_path, args = gen
     predicted = ["stage.evaluate_gen.future_poses=predicted", "stage.evaluate_gen.frames=6"]
-    p = _gdwm("run", f"workdir={tmp_path}", "targets=[evaluate_gen]", *TINY, *predicted)
+    p = _gdwm("run", *args, "targets=[evaluate_gen]", *predicted)
     assert p.returncode == 0, p.stderr[-4000:]
-    (ev,) = Cache(tmp_path / "cache").entries("evaluate_gen")
+    entries = Cache(tmp_path / "cache").entries("evaluate_gen")
+    (ev,) = [m for m in entries if m.config["stage.evaluate_gen"]["future_poses"] == "predicted"]
     m = json.loads((tmp_path / "cache" / "evaluate_gen" / ev.key[:2] / ev.key / "metrics.json").read_text())
     pred_views = sum(f.path.startswith("samples/future_pred_1s/") for f in ev.files)
     # the val scene's one trajectory question (reference frame 4 < 6), one horizon: a view or a counted miss
