@@ -148,7 +148,7 @@ def compare(cfg: DictConfig) -> int:
         raise CommandError(str(e)) from None
     for fmt in (f for f in args.formats if f in SUFFIX):
         path = out / f"{layout.name}.{SUFFIX[fmt]}"
-        path.write_text(_render(fmt, table, base, backend, cfg, sel.selector), encoding="utf-8")
+        path.write_text(_render(fmt, table, base, backend, cfg, sel), encoding="utf-8")
         console.print(f"wrote {path}")
         if sel.sweep_run_id and backend is not None:  # this process is the only writer of the store while it runs
             backend.log_artifact(sel.sweep_run_id, str(path), f"compare/{layout.name}")
@@ -224,7 +224,7 @@ def published_averages(table: Table, refs: list[Reference]) -> list[str]:
     return out
 
 
-def _render(fmt: Format, table, base: int, backend: TrackingBackend | None, cfg: DictConfig, selector: str) -> str:
+def _render(fmt: Format, table, base: int, backend: TrackingBackend | None, cfg: DictConfig, sel: Selection) -> str:
     if fmt is Format.markdown:
         return to_markdown(table)
     if fmt is Format.latex:
@@ -234,6 +234,10 @@ def _render(fmt: Format, table, base: int, backend: TrackingBackend | None, cfg:
     from gdwm.compare.report import html_report  # matplotlib only when a report is asked for
 
     rows = [r for r in table.rows if r.run_id and backend is not None]
-    linked = linked_runs(backend, rows, selector) if rows else {}
+    own = {r.run_id for r in sel.rows}
+    if sel.linked is not None and all(r.run_id in own for r in rows):  # select read the stage runs they link
+        linked = sel.linked
+    else:
+        linked = linked_runs(backend, rows, sel.selector) if rows else {}
     curves = {r.run_id: training_curves(backend, r, linked) for r in rows}
-    return html_report(table, base, curves, ui_url(cfg), selector, cfg.tracking.uri)
+    return html_report(table, base, curves, ui_url(cfg), sel.selector, cfg.tracking.uri)

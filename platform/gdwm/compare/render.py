@@ -27,6 +27,7 @@ def _cell(table: Table, i: int, metric: str) -> tuple[str, str | None]:
 def to_rich(table: Table, chars: bool = False) -> RichTable:
     """Group names head the first column of their group; bold = best, underlined = second (``chars``: ``*`` and
     ``†`` after the value, for output that is not a terminal); legend and notes as caption. Cells wrap, never cut."""
+    has_notes = table.has_notes  # once: it looks at every row
     lines = table.caption_lines(chars)
     caption = Text("\n".join(lines)) if lines else None  # Text: a "[" in a note is no markup
     t = RichTable(title=table.title, header_style="bold", caption=caption, caption_justify="left")
@@ -38,14 +39,14 @@ def to_rich(table: Table, chars: bool = False) -> RichTable:
         group = c.group if c.group not in seen else ""
         seen.add(c.group)
         t.add_column((f"{group}\n" if top else "") + f"{c.header} {c.arrow}", justify="right", overflow="fold")
-    if table.has_notes:
+    if has_notes:
         t.add_column("note", style="red", overflow="fold")
     for i, r in enumerate(table.rows):
         cells = [Text(x) for x in table.lead(i)]
         for c in table.columns:
             mark = table.marks.get((i, c.metric))
             cells.append(Text(table.text(i, c.metric, chars), style="" if chars else _STYLE.get(mark, "")))
-        if table.has_notes:
+        if has_notes:
             cells.append(Text(r.note))
         t.add_row(*cells, style="dim" if r.failed else None, end_section=table.block_ends(i))
     return t
@@ -58,17 +59,18 @@ def _md_escape(s: str) -> str:
 def to_markdown(table: Table) -> str:
     """GitHub Markdown: ``**best**``, ``<u>second</u>``; headers read ``<group> <header> ↑``; legend and notes under
     it, a paragraph each."""
+    has_notes = table.has_notes  # once: it looks at every row
     head = [*table.lead_names, *(c.label for c in table.columns)]
-    head += ["note"] if table.has_notes else []
+    head += ["note"] if has_notes else []
     lines = [f"**{_md_escape(table.title)}**", "", "| " + " | ".join(map(_md_escape, head)) + " |"]
-    align = ["---"] * len(table.lead_names) + ["---:"] * len(table.columns) + ["---"] * table.has_notes
+    align = ["---"] * len(table.lead_names) + ["---:"] * len(table.columns) + ["---"] * has_notes
     lines.append("| " + " | ".join(align) + " |")
     for i, r in enumerate(table.rows):
         cells = table.lead(i)
         for c in table.columns:
             text, mark = _cell(table, i, c.metric)
             cells.append(f"**{text}**" if mark == BEST else f"<u>{text}</u>" if mark == SECOND else text)
-        cells += [r.note] if table.has_notes else []
+        cells += [r.note] if has_notes else []
         lines.append("| " + " | ".join(map(_md_escape, cells)) + " |")
     for line in table.caption:
         lines += ["", _md_escape(line)]
@@ -111,8 +113,9 @@ def _tex_cell(table: Table, i: int, metric: str) -> str:
 def to_latex(table: Table) -> str:
     """A booktabs ``tabular`` (needs booktabs); group headers as ``\\multicolumn`` over a ``\\cmidrule``; legend and
     notes as comments above it and in a ``\\caption{...}`` line (commented, to paste into the float) below."""
+    has_notes = table.has_notes  # once: it looks at every row
     lead = len(table.lead_names)
-    spec = "l" * lead + "c" * len(table.columns) + ("l" if table.has_notes else "")
+    spec = "l" * lead + "c" * len(table.columns) + ("l" if has_notes else "")
     lines = [
         f"% {tex_escape(table.title)} (needs \\usepackage{{booktabs}})",
         *([f"% Legend: {table.legend}"] if table.legend else []),
@@ -128,15 +131,15 @@ def to_latex(table: Table) -> str:
             if group:
                 rules.append(f"\\cmidrule(lr){{{col}-{col + span - 1}}}")
             col += span
-        cells += [""] if table.has_notes else []
+        cells += [""] if has_notes else []
         lines += [" & ".join(cells) + r" \\", "".join(rules)]
     head = ["Row", *table.lead_names[1:], *(f"{c.header} {c.arrow}" for c in table.columns)]
-    head += ["Note"] if table.has_notes else []
+    head += ["Note"] if has_notes else []
     lines += [" & ".join(map(tex_escape, head)) + r" \\", r"\midrule"]
     for i, r in enumerate(table.rows):
         cells = [tex_escape(x) for x in table.lead(i)]
         cells += [_tex_cell(table, i, c.metric) for c in table.columns]
-        cells += [tex_escape(r.note)] if table.has_notes else []
+        cells += [tex_escape(r.note)] if has_notes else []
         lines.append(" & ".join(cells) + r" \\")
         if table.block_ends(i):
             lines.append(r"\midrule")

@@ -20,6 +20,11 @@ Curves = dict[str, list[tuple[int, float]]]
 """``<stage>/<metric>`` -> (step, value) history of one row."""
 
 MAX_PANELS = 16
+MAX_LEGEND = 10
+"""Rows a plot's legend names at most: matplotlib's colour cycle has 10 colours, so beyond them a legend cannot tell
+rows apart (and 200 entries outgrow the figure: its layout collapses, and drawing them took seconds)."""
+MAX_TICKS = 30
+"""Row labels a bar panel prints at most (every k-th bar beyond): 200 labels overlap in a panel and took a second."""
 
 _CSS = """
 body { font-family: system-ui, sans-serif; margin: 2em; color: #222; }
@@ -91,7 +96,9 @@ def bars(table: Table) -> str | None:
             ecolor="#444",
             color=[colour.get(table.marks.get((i, c.metric)), "#bbb") for i in ok],
         )
-        ax.set_xticks(range(len(ok)), [table.rows[i].label for i in ok], rotation=45, ha="right", fontsize=7)
+        every = max(1, math.ceil(len(ok) / MAX_TICKS))
+        ticks = range(0, len(ok), every)
+        ax.set_xticks(ticks, [table.rows[ok[k]].label for k in ticks], rotation=45, ha="right", fontsize=7)
         ax.set_title(c.label, fontsize=9)
     return _png(fig)
 
@@ -114,7 +121,8 @@ def radar(table: Table) -> str | None:
         ax.fill([*angles, angles[0]], [*r, r[0]], alpha=0.08)
     ax.set_xticks(angles, [f"{table.columns[j].header} {table.columns[j].arrow}" for j in cols], fontsize=8)
     ax.set_ylim(0, 1.0)
-    ax.legend(loc="upper right", bbox_to_anchor=(1.35, 1.1), fontsize=8)
+    if len(ok) <= MAX_LEGEND:
+        ax.legend(loc="upper right", bbox_to_anchor=(1.35, 1.1), fontsize=8)
     return _png(fig)
 
 
@@ -131,7 +139,8 @@ def curves_plot(table: Table, curves: dict[str, Curves]) -> str | None:
                 ax.plot([s for s, _ in history], [v for _, v in history], label=r.label)
         ax.set_title(key, fontsize=9)
         ax.set_xlabel("step", fontsize=8)
-    axes[0].legend(fontsize=7)
+    if sum(1 for r in table.rows if curves.get(r.run_id)) <= MAX_LEGEND:
+        axes[0].legend(fontsize=7)
     return _png(fig)
 
 
@@ -167,7 +176,8 @@ def delta_bars(table: Table, base: int) -> str | None:
         fontsize=8,
     )
     ax.set_ylabel(f"% better than {table.rows[base].label}", fontsize=8)
-    ax.legend(fontsize=7)
+    if len(others) <= MAX_LEGEND:
+        ax.legend(fontsize=7)
     return _png(fig)
 
 

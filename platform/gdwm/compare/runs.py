@@ -161,6 +161,8 @@ class Selection:
     """What selected the rows, as the user wrote it (for messages)."""
     rows: list[Row]
     sweep_run_id: str | None = None
+    linked: dict[str, dict] | None = None
+    """:func:`linked_runs` of ``rows``, read once by :func:`select` (None: not read)."""
 
 
 def _trial(r: dict) -> Trial:
@@ -289,8 +291,8 @@ def select(
             f"of {backend.uri}"
         )
     rows = [_row(backend, r, factor_params, selector, known.get(r["run_id"])) for r in found]
-    read_labels(backend, rows, selector)
-    return Selection(name, selector, rows, sweep_run_id)
+    linked = read_labels(backend, rows, selector)
+    return Selection(name, selector, rows, sweep_run_id, linked)
 
 
 def linked_runs(backend: TrackingBackend, rows: list[Row], selector: str, chunk: int = 100) -> dict[str, dict]:
@@ -305,11 +307,12 @@ def linked_runs(backend: TrackingBackend, rows: list[Row], selector: str, chunk:
     return found
 
 
-def read_labels(backend: TrackingBackend, rows: list[Row], selector: str) -> None:
+def read_labels(backend: TrackingBackend, rows: list[Row], selector: str) -> dict[str, dict]:
     """Fill ``labels`` and ``proxy`` of every trial from the ``protocol/`` and ``proxy/`` params of the stage runs
-    it links."""
+    it links; returns those runs (:func:`linked_runs`)."""
     trials = [t for r in rows for t in r.trials]
-    params = {run_id: r["params"] for run_id, r in linked_runs(backend, rows, selector).items()}
+    linked = linked_runs(backend, rows, selector)
+    params = {run_id: r["params"] for run_id, r in linked.items()}
     for t in trials:
         for key, run_id in t.tags.items():
             if key.startswith(STAGE_LINK_PREFIX):
@@ -318,6 +321,7 @@ def read_labels(backend: TrackingBackend, rows: list[Row], selector: str) -> Non
                         t.labels[name[len(PROTOCOL_PARAM) :]] = value
                     elif name.startswith(PROXY_PARAM):
                         t.proxy[name[len(PROXY_PARAM) :]] = value
+    return linked
 
 
 def stage_runs(
