@@ -272,8 +272,9 @@ def test_a_root_marked_by_another_process_between_the_marker_check_and_the_listi
             (root / CACHE_MARKER).write_text('{"gdwm": "cache"}')  # the other actor, right after our check
         return out
 
+    fs = cache.fs
     cache.fs = type("RacingFS", (), {"get_file_info": staticmethod(marked_meanwhile), "__getattr__":
-                                     lambda self, name: getattr(Cache(root).fs, name)})()  # fmt: skip
+                                     lambda self, name: getattr(fs, name)})()  # fmt: skip
     assert cache_state(cache) == "marked"
     assert own_cache(cache, create=True) == "marked"
 
