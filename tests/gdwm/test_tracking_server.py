@@ -121,3 +121,25 @@ def test_gdwm_run_with_a_wrong_password_names_the_credentials(server, tmp_path):
         "set MLFLOW_TRACKING_USERNAME/MLFLOW_TRACKING_PASSWORD"
     ) in " ".join(r.stderr.split())  # rich may wrap the line
     assert "Traceback" not in r.stderr and "wrong-password-1" not in r.stdout + r.stderr
+
+
+def test_texts_and_files_of_a_run_the_backend_created_cost_no_request_for_the_run(server, tmp_path, monkeypatch):
+    for k, v in server.creds("trainer").items():
+        monkeypatch.setenv(k, v)
+    backend = TrackingBackend(server.uri, "artifact-requests", system_metrics_interval_s=0)
+    ours = backend.create_run("ours", {})
+    theirs = mlflow.MlflowClient(server.uri).create_run(backend.experiment_id).info.run_id  # made by another process
+    (tmp_path / "table.csv").write_text("a,b\n1,2\n")
+    gets = lambda: server.log.read_text().count("GET /api/2.0/mlflow/runs/get?")  # noqa: E731
+    before = gets()
+    backend.log_text(ours, "hello", "notes/readme.txt")
+    backend.log_artifact(ours, str(tmp_path / "table.csv"), "eval")
+    backend.log_text(ours, "top", "top.txt")
+    assert gets() == before  # the artifact URI came back when the run was created
+    backend.log_text(theirs, "hi", "notes/readme.txt")
+    assert gets() == before + 1  # a run made elsewhere: MLflow's client asks for it, once per process
+    client = mlflow.MlflowClient(server.uri)
+    assert Path(client.download_artifacts(ours, "notes/readme.txt", str(tmp_path / "d1"))).read_text() == "hello"
+    assert Path(client.download_artifacts(ours, "eval/table.csv", str(tmp_path / "d2"))).read_text() == "a,b\n1,2\n"
+    assert Path(client.download_artifacts(ours, "top.txt", str(tmp_path / "d3"))).read_text() == "top"
+    assert Path(client.download_artifacts(theirs, "notes/readme.txt", str(tmp_path / "d4"))).read_text() == "hi"
