@@ -7,6 +7,7 @@ from __future__ import annotations
 import base64
 import contextlib
 import json
+import logging
 import os
 import pwd
 import secrets
@@ -44,6 +45,8 @@ class Moto:
     process, so they survive a restart)."""
 
     def __init__(self):
+        # moto serves through werkzeug, whose logger prints every request at INFO (verbose=False leaves it on)
+        logging.getLogger("werkzeug").setLevel(logging.WARNING)
         self.server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
         self.server.start()
         self.port = self.server.get_host_and_port()[1]
