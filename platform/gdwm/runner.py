@@ -306,7 +306,7 @@ def driver_session(cfg: DictConfig, warm: list[str] | None = None) -> Iterator[T
             early[1]()
         raise
     if warm and started is True and not cfg.cluster.address:
-        import_modules.remote(warm)  # its worker goes back to the pool with them: the next task gets it
+        import_modules.remote(warm)  # its worker goes back to Ray's pool with them, for a later task to reuse
     try:
         if early is None:
             with phase("tracking start"):
