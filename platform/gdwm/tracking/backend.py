@@ -302,7 +302,7 @@ class TrackingBackend:
 
     def log_text(self, run_id: str, text: str, artifact_file: str) -> None:
         text = redact(text)  # error.txt may quote a URI
-        if self._artifact_repo(run_id) is None:
+        if run_id not in self._artifact_uris:
             self.client.log_text(run_id, text, artifact_file)
             return
         folder, name = posixpath.split(artifact_file)
