@@ -367,6 +367,8 @@ def test_two_tasks_log_through_one_tracking_actor(ray_local, cfg):
         return errors
 
     assert ray.get([log_300.remote(tracker, "a"), log_300.remote(tracker, "b")]) == [[], []]
+    # its sampler starts one interval after the run (gdwm.tracking.backend._LateMonitor): its first sample, then end
+    wait_for(lambda: len(client.metric_history(run_id, "system/cpu_utilization_percentage")) >= 1)
     client.end_run(run_id)
     assert client.metric_history(run_id, "a/loss") == [(s, s * 0.5) for s in range(300)]
     assert len(client.metric_history(run_id, "b/loss")) == 300

@@ -15,6 +15,7 @@ import pytest
 from gdwm.tracking import TrackingBackend
 from tests.gdwm.servers import MlflowServer, mlflow_auth_server, rest_call
 from tests.gdwm.test_run import Toy, _ok
+from tests.gdwm.test_tracking import wait_for
 
 pytestmark = pytest.mark.heavy(1.5)
 
@@ -143,3 +144,24 @@ def test_texts_and_files_of_a_run_the_backend_created_cost_no_request_for_the_ru
     assert Path(client.download_artifacts(ours, "eval/table.csv", str(tmp_path / "d2"))).read_text() == "a,b\n1,2\n"
     assert Path(client.download_artifacts(ours, "top.txt", str(tmp_path / "d3"))).read_text() == "top"
     assert Path(client.download_artifacts(theirs, "notes/readme.txt", str(tmp_path / "d4"))).read_text() == "hi"
+
+
+def test_a_stage_run_shorter_than_the_sampling_interval_costs_no_request_for_system_metrics(server, monkeypatch):
+    """MLflow's monitor asks the server for the run each interval and again as it stops: a stage run that ends
+    within its first interval (it would record no sample either) asks nothing; a longer one samples as before."""
+    for k, v in server.creds("trainer").items():
+        monkeypatch.setenv(k, v)
+    backend = TrackingBackend(server.uri, "system-metrics-requests", system_metrics_interval_s=1.0)
+    gets = lambda: server.log.read_text().count("GET /api/2.0/mlflow/runs/get?")  # noqa: E731
+    before = gets()
+    short = backend.create_run("short", {"gdwm.stage": "score"})
+    monitor = backend._monitors[short]
+    backend.end_run(short)
+    assert (monitor.started, gets()) == (False, before)
+    key = "system/system_memory_usage_megabytes"
+    long = backend.create_run("long", {"gdwm.stage": "lora"})
+    wait_for(lambda: len(backend.metric_history(long, key)) >= 1, timeout_s=60)
+    backend.end_run(long)
+    assert gets() > before  # it asked, interval by interval
+    short_run = mlflow.MlflowClient(server.uri).get_run(short)
+    assert (short_run.info.status, [k for k in short_run.data.metrics if k.startswith("system/")]) == ("FINISHED", [])

@@ -13,6 +13,7 @@ import logging
 import os
 import posixpath
 import tempfile
+import threading
 import time
 import uuid
 from collections.abc import Callable, Mapping
@@ -47,7 +48,6 @@ from gdwm.zoo import registry as zoo
 if TYPE_CHECKING:
     from mlflow.exceptions import MlflowException
     from mlflow.store.artifact.artifact_repository import ArtifactRepository
-    from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
 
 # MLflow prints a link per run it ends on a server ("View run ... at: ...") after one more request: gdwm's output names
 # its runs itself, in workers too (they import this module to unpickle a backend).
@@ -160,7 +160,7 @@ class TrackingBackend:
         from mlflow import MlflowClient
 
         self.client = MlflowClient(self.uri)
-        self._monitors: dict[str, SystemMetricsMonitor] = {}
+        self._monitors: dict[str, _LateMonitor] = {}
         self._artifact_uris: dict[str, str] = {}
         """Run id -> artifact URI of the runs this backend created: their artifacts need no request to find it."""
 
@@ -341,18 +341,12 @@ class TrackingBackend:
 
     def start_system_metrics(self, run_id: str, resume: bool = False) -> None:
         """Sample CPU/memory/disk/network (and GPU) of *this* process's host into ``system/*`` every
-        ``system_metrics_interval_s`` (<= 0: off) until the run ends. In single-writer mode this runs in the
-        tracking actor (the only sqlite writer, on the driver's node); in server mode in the process that
-        created the run (the stage's task)."""
+        ``system_metrics_interval_s`` (<= 0: off) until the run ends, from one interval after it starts
+        (``_LateMonitor``). In single-writer mode this runs in the tracking actor (the only sqlite writer, on the
+        driver's node); in server mode in the process that created the run (the stage's task)."""
         if run_id in self._monitors or self.system_metrics_interval_s <= 0:
             return
-        from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
-
-        monitor = SystemMetricsMonitor(
-            run_id, sampling_interval=self.system_metrics_interval_s, resume_logging=resume, tracking_uri=self.uri
-        )
-        monitor.start()
-        self._monitors[run_id] = monitor
+        self._monitors[run_id] = _LateMonitor(run_id, self.system_metrics_interval_s, resume, self.uri)
 
     def stop_system_metrics(self, run_id: str) -> None:
         monitor = self._monitors.pop(run_id, None)
@@ -407,6 +401,49 @@ class TrackingBackend:
         if killed:
             log.warning("reconciled %d run(s) left RUNNING by dead owners: %s", len(killed), ", ".join(killed))
         return killed
+
+
+class _LateMonitor:
+    """MLflow's ``SystemMetricsMonitor`` of one run, started one sampling interval after the run. MLflow's monitor
+    samples at once, publishes after an interval, and asks the store for the run (a request to a server) each
+    interval and once more as it stops; a run that ends within the first interval records nothing either way. So
+    starting late costs a stage run none of its samples, only the first one (taken at the start, before the stage
+    did anything), and a stage shorter than the interval (a cached lookup, a sweep's evaluation of a few seconds)
+    no request and no sampling thread."""
+
+    def __init__(self, run_id: str, interval_s: float, resume: bool, uri: str):
+        self._args = (run_id, interval_s, resume, uri)
+        self._lock = threading.Lock()
+        self._monitor: Any = None
+        self._ended = False
+        self._timer = threading.Timer(interval_s, self._start)
+        self._timer.daemon = True
+        self._timer.start()
+
+    def _start(self) -> None:
+        from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+
+        run_id, interval_s, resume, uri = self._args
+        with self._lock:
+            if self._ended:
+                return
+            self._monitor = SystemMetricsMonitor(
+                run_id, sampling_interval=interval_s, resume_logging=resume, tracking_uri=uri
+            )
+            self._monitor.start()
+
+    @property
+    def started(self) -> bool:
+        return self._monitor is not None
+
+    def finish(self) -> None:
+        """Stop sampling (the samples so far flushed); a monitor not started yet never starts."""
+        self._timer.cancel()
+        with self._lock:
+            self._ended = True
+            monitor, self._monitor = self._monitor, None
+        if monitor is not None:
+            monitor.finish()
 
 
 def _refused(uri: str, experiment: str, e: MlflowException) -> PermissionError | None:
