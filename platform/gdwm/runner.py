@@ -47,7 +47,7 @@ from gdwm.cache import CACHE_KEYS, Cache
 from gdwm.config import SweepConfig
 from gdwm.dag import Pipeline
 from gdwm.determinism import worker_env
-from gdwm.environment.runs import DIGEST_TAG, log_launch
+from gdwm.environment.runs import DIGEST_TAG, launch_record, log_launch, record_tags
 from gdwm.errors import one_line, oom_line
 from gdwm.events import Event, launch_id
 from gdwm.executor import (
@@ -358,15 +358,26 @@ class Layout:
     pipeline: str
     recorded: set[str] = field(default_factory=set, init=False)
     """Row and trial runs an earlier launch of this one recorded an environment on (``gdwm.environment``)."""
+    created: set[str] = field(default_factory=set, init=False)
+    """Row and trial runs ``open`` created, with the tags its ``run_tags`` gave (the environment record's)."""
 
     @property
     def stage_tags(self) -> dict[str, str]:
         return {"gdwm.sweep": self.sweep.name} if self.sweep else {}
 
-    def open(self, tracking: TrackingClient, cfg: DictConfig, rows: list[Row], trials: list[Trial]) -> str:
+    def open(
+        self,
+        tracking: TrackingClient,
+        cfg: DictConfig,
+        rows: list[Row],
+        trials: list[Trial],
+        run_tags: Callable[[str], Mapping[str, str]] | None = None,
+    ) -> str:
         """The launch's run (found again or created), and every row's and trial's run under it: one search finds the
-        runs an earlier launch of it made (reopened, re-tagged), one call creates the rest per level."""
+        runs an earlier launch of it made (reopened, re-tagged), one call creates the rest per level, with the tags
+        ``run_tags(launch run)`` gives (a write less per run than tagging them after)."""
         parent = self._parent(tracking, cfg)
+        born = dict(run_tags(parent)) if run_tags else {}
         if self.sweep is None:  # the run is the row (and, with one seed, the trial)
             seeds = rows[0].seeds
             tracking.set_tags(parent, {"gdwm.seeds": ",".join(map(str, seeds))} | (
@@ -385,9 +396,10 @@ class Layout:
                 continue
             cfg0 = next(t for t in trials if t.row is row).cfg
             params = config_params(cfg0) | factor_params(row)
-            new_rows.append((row, NewRun(f"{self.sweep.name}/{row.label}", tags, parent, params)))
+            new_rows.append((row, NewRun(f"{self.sweep.name}/{row.label}", tags | born, parent, params)))
         for (row, _), run_id in zip(new_rows, tracking.create_runs([n for _, n in new_rows]), strict=True):
             row.run_id = run_id
+            self.created.add(run_id)
         new_trials: list[tuple[Trial, NewRun]] = []
         for t in trials:
             if self.sweep is None and len(t.row.seeds) == 1:
@@ -401,9 +413,10 @@ class Layout:
                 continue
             name = f"{self.sweep.name}/{t.name}" if self.sweep else f"seed-{t.seed}"
             params = config_params(t.cfg) | (factor_params(t.row) if self.sweep else {})
-            new_trials.append((t, NewRun(name, tags, t.row.run_id, params)))
+            new_trials.append((t, NewRun(name, tags | born, t.row.run_id, params)))
         for (t, _), run_id in zip(new_trials, tracking.create_runs([n for _, n in new_trials]), strict=True):
             t.run_id = run_id
+            self.created.add(run_id)
         tracking.write(reopened)
         return parent
 
@@ -748,14 +761,17 @@ def launch(
     results: dict[int, TrialResult] = {}
 
     with _launch_lock(cfg, layout), driver_session(cfg, warm_modules(trials)) as tracking:
+        with phase("environment record"):
+            rec = launch_record(cfg)
         with phase("launch runs"):
-            parent = layout.open(tracking, cfg, rows, trials)
+            # new row and trial runs are created tagged with the environment they run in (gdwm.environment)
+            parent = layout.open(tracking, cfg, rows, trials, lambda launch_run: record_tags(rec, launch_run))
             summary.parent_run_id = parent
         with phase("environment record"):
             # what `gdwm cache gc` keeps while each trial runs (its end replaces it with what it used), and the
-            # environment these runs ran in (gdwm.environment): one write
+            # record on the launch's run, the runs found again tagged with it: one write
             planned = [RunWrite(t.run_id, texts={CACHE_KEYS: json.dumps(planned_keys(t), indent=1)}) for t in trials]
-            log_launch(tracking, cfg, parent, trials, layout.recorded, planned)
+            log_launch(tracking, cfg, parent, trials, layout.recorded, planned, rec=rec, tagged=layout.created)
         # on the driver's node, as the tracking actor: a worker node lost mid-run must not take the board along
         here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
         actor = ProgressActor.options(scheduling_strategy=here).remote()

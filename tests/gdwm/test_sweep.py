@@ -52,6 +52,16 @@ def test_shared_stages_run_exactly_once(swept):
     assert "(shared by 3 trials)" in swept.stdout  # tokenizer
 
 
+def test_rows_and_trials_carry_the_environment_record_of_the_sweep_run(swept):
+    # created with the record's tags (gdwm.runner.Layout.open), not tagged after: the same tags either way
+    (parent,) = swept.runs("sweep")
+    record = {k: parent.data.tags[k] for k in ("gdwm.env", "gdwm.env_run", "gdwm.commit")}
+    assert record["gdwm.env_run"] == parent.info.run_id and len(record["gdwm.env"]) >= 12
+    runs = swept.runs("row") + swept.runs("trial")
+    assert len(runs) == 6
+    assert [{k: r.data.tags.get(k) for k in record} for r in runs] == [record] * 6
+
+
 def test_one_parent_a_run_per_row_and_a_child_per_trial(swept):
     (parent,) = swept.runs("sweep")
     assert parent.info.status == "FINISHED" and parent.data.tags["gdwm.sweep"] == "toy_ablation"

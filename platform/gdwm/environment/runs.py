@@ -16,7 +16,7 @@ import json
 import os
 import sys
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -58,22 +58,33 @@ def launch_facts(cfg: DictConfig) -> dict[str, Any]:
     return {"cwd": os.getcwd(), "workdir": str(Path(cfg.workdir).resolve()), "argv": [redact(a) for a in sys.argv]}
 
 
+def launch_record(cfg: DictConfig) -> dict[str, Any]:
+    """The launch's environment (``for_launch``) and how it was started (``launch_facts``)."""
+    return for_launch(cfg) | {"launch": launch_facts(cfg)}
+
+
+def record_tags(rec: Mapping[str, Any], record_run: str) -> dict[str, str]:
+    """The tags that point a run at the record ``rec`` written on ``record_run``."""
+    return {DIGEST_TAG: rec["digest"], RECORD_RUN_TAG: record_run, COMMIT_TAG: commit_tag(rec)}
+
+
 def log_launch(tracking, cfg: DictConfig, parent: str, trials: Iterable, recorded: set[str] | None = None,
-               extra: list | None = None) -> dict[str, Any]:  # fmt: skip
-    """The launch's record (``for_launch``), written on the launch's run; the launch's run, and the rows and trials
-    this launch computes, tagged with it (a trial every stage of which is cached keeps an earlier record: one search
-    of the launch's runs tells, unless the caller knows them, ``recorded``); each tagged trial gets its
-    ``config.yaml``. One write to the store, with the caller's ``extra`` writes (``gdwm.tracking.RunWrite``).
-    Returns the record."""
+               extra: list | None = None, rec: dict[str, Any] | None = None,
+               tagged: Iterable[str] = ()) -> dict[str, Any]:  # fmt: skip
+    """The launch's record (``rec``, else ``launch_record``), written on the launch's run; the launch's run, and the
+    rows and trials this launch computes, tagged with it (``record_tags``; a trial every stage of which is cached
+    keeps an earlier record: one search of the launch's runs tells, unless the caller knows them, ``recorded``;
+    ``tagged``: runs created with the tags already); each trial so recorded gets its ``config.yaml``. One write to
+    the store, with the caller's ``extra`` writes (``gdwm.tracking.RunWrite``). Returns the record."""
     from gdwm.tracking.writes import RunWrite
 
     trials = list(trials)
-    rec = for_launch(cfg) | {"launch": launch_facts(cfg)}
-    tags = {DIGEST_TAG: rec["digest"], RECORD_RUN_TAG: parent, COMMIT_TAG: commit_tag(rec)}
+    rec = rec if rec is not None else launch_record(cfg)
+    tags = record_tags(rec, parent)
     writes = [RunWrite(parent, tags=tags, texts={artifact(rec["digest"]): json.dumps(rec, indent=1, sort_keys=True)})]
     if recorded is None:
         recorded = {r["run_id"] for r in _launch_runs(tracking, trials) if r["tags"].get(DIGEST_TAG)}
-    tagged = {parent}  # runs tagged so far
+    tagged = {parent, *tagged}  # runs tagged so far
     for t in trials:
         if any(r.status != "cached" for r in t.plan) or t.run_id not in recorded:
             for run_id in dict.fromkeys((t.run_id, t.row.run_id)):
