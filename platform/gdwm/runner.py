@@ -90,7 +90,7 @@ from gdwm.tracking import (
     open_tracking,
     process_owner,
 )
-from gdwm.tracking.params import flatten_params, relative_paths
+from gdwm.tracking.params import flatten_params, own_params, relative_paths
 from gdwm.zoo.registry import metric_tags
 
 __all__ = ["PlanError", "RunError", "launch", "run_pipeline"]
@@ -383,6 +383,13 @@ class Layout:
             tracking.set_tags(parent, {"gdwm.seeds": ",".join(map(str, seeds))} | (
                 {"gdwm.seed": str(seeds[0])} if len(seeds) == 1 else {}))  # fmt: skip
         found = self._earlier(tracking)
+        # a row's run holds its config as params (its first trial's; its seeds differ in the seed alone), a trial's
+        # run what differs from it (gdwm.tracking.own_params); a gdwm run's trials are under the launch's run
+        row_params = {
+            id(row): config_params(next(t for t in trials if t.row is row).cfg) | factor_params(row)
+            if self.sweep else config_params(cfg)
+            for row in rows
+        }  # fmt: skip
         reopened: list[RunWrite] = []
         new_rows: list[tuple[Row, NewRun]] = []
         for row in rows:
@@ -394,8 +401,7 @@ class Layout:
                 row.run_id = run_id
                 reopened.append(RunWrite(run_id, tags=tags, reopen=True))
                 continue
-            cfg0 = next(t for t in trials if t.row is row).cfg
-            params = config_params(cfg0) | factor_params(row)
+            params = row_params[id(row)]
             new_rows.append((row, NewRun(f"{self.sweep.name}/{row.label}", tags | born, parent, params)))
         for (row, _), run_id in zip(new_rows, tracking.create_runs([n for _, n in new_rows]), strict=True):
             row.run_id = run_id
@@ -412,7 +418,8 @@ class Layout:
                 reopened.append(RunWrite(run_id, tags=tags, reopen=True))
                 continue
             name = f"{self.sweep.name}/{t.name}" if self.sweep else f"seed-{t.seed}"
-            params = config_params(t.cfg) | (factor_params(t.row) if self.sweep else {})
+            factors = factor_params(t.row) if self.sweep else {}
+            params = own_params(config_params(t.cfg) | factors, row_params[id(t.row)], keep=factors)
             new_trials.append((t, NewRun(name, tags | born, t.row.run_id, params)))
         for (t, _), run_id in zip(new_trials, tracking.create_runs([n for _, n in new_trials]), strict=True):
             t.run_id = run_id

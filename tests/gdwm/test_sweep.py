@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from gdwm.cli import main
+from gdwm.tracking.params import full_params
 from tests.gdwm.test_run import Toy, _ok
 
 pytestmark = pytest.mark.heavy(3.5)
@@ -81,7 +82,9 @@ def test_one_parent_a_run_per_row_and_a_child_per_trial(swept):
     assert "acc/std" not in rows["rank 8"].data.metrics and "n/acc" not in rows["rank 8"].data.metrics
     assert rows["rank 8"].data.params["factor.Rank"] == "8"
     assert trials["rank 8"].data.tags["gdwm.factor.Rank"] == "8"
-    assert trials["rank 8"].data.params["stage.toy_lora.rank"] == "8"
+    # the row's run holds the config; a one-seed trial's run what differs from it (nothing) and its factors
+    assert rows["rank 8"].data.params["stage.toy_lora.rank"] == "8" and len(rows["rank 8"].data.params) > 100
+    assert trials["rank 8"].data.params == {"factor.Rank": "8"}
     # the toy evaluate_qa sums lora weights that grow by `rank` per step (3 steps, 4 dims)
     assert {k: t.data.metrics["acc"] for k, t in trials.items()} == {"rank 2": 24.0, "rank 4": 48.0, "rank 8": 96.0}
     # every trial links the stage runs it used; the shared tokenizer run is the same for all three
@@ -184,6 +187,15 @@ def test_seeds_share_seed_free_stages_and_aggregate_per_row(tmp_path):
     rows = {x.data.tags["gdwm.row"]: x for x in toy.runs("row")}
     trials = toy.runs("trial")
     assert len(trials) == 6 and sorted(t.data.tags["gdwm.seed"] for t in trials) == ["0", "0", "1", "1", "2", "2"]
+    # a trial's run records what differs from its row's config (the seed) and its factors; the row the rest
+    for t in trials:
+        seed, row = t.data.tags["gdwm.seed"], rows[t.data.tags["gdwm.row"]]
+        own = dict(t.data.params)
+        assert own.pop("factor.Rank") == row.data.params["factor.Rank"] and row.data.params["seed"] == "0"
+        # the row's config is its first seed's: seed 0 differs in nothing; the others in `seed` and what it sets
+        assert sorted(own) == ([] if seed == "0" else ["model.llm.seed", "model.selector.seed", "seed"])
+        assert set(own.values()) <= {seed}
+        assert full_params(t.data.params, row.data.params)["seed"] == seed
     from tests.gdwm.stages import seed_noise
 
     # rank 4, 3 steps, 4 dims: acc = 12 * (4 + noise(seed))

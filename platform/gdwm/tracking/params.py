@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import os
 import re
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +27,8 @@ __all__ = [
     "MAX_TAG_VAL_LENGTH",
     "batches",
     "flatten_params",
+    "full_params",
+    "own_params",
     "relative_paths",
     "truncate",
 ]
@@ -84,6 +86,21 @@ def relative_paths(params: Mapping[str, str], root: str | Path) -> dict[str, str
                 break
         out[k] = v
     return out
+
+
+def own_params(params: Mapping[str, str], inherited: Mapping[str, str], keep: Iterable[str] = ()) -> dict[str, str]:
+    """What a trial run records of its config ``params`` under its row's run, which holds ``inherited``: the values
+    that differ from the row's (a seed and what it sets) and the keys ``keep`` (its factors, which MLflow's views
+    filter and plot by); :func:`full_params` puts the config back together. A 200-row sweep's trial runs repeated
+    every row's ~270 params: three more requests a trial to a team's server, and every search returning them twice."""
+    keep = set(keep)
+    return {k: v for k, v in params.items() if k in keep or inherited.get(k) != v}
+
+
+def full_params(own: Mapping[str, str], inherited: Mapping[str, str]) -> dict[str, str]:
+    """A trial's config as params: its row's (``inherited``) overlaid with its own (:func:`own_params`); a trial run
+    that recorded its whole config (gdwm before 2026-12-06) comes back as it is."""
+    return {**inherited, **own}
 
 
 def batches(items: Sequence, size: int) -> Iterator[list]:

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from gdwm.progress import duration
+from gdwm.tracking.params import full_params
 from gdwm.ui.live import Live, grid_from_runs, launch_live, stale_reason, trial_label
 from gdwm.ui.store import TERMINAL, Store
 
@@ -309,6 +310,12 @@ def _flat_diff(a: dict[str, str], b: dict[str, str]) -> list[tuple[str, str, str
     return [(k, a.get(k, "–"), b.get(k, "–")) for k in sorted(a.keys() | b.keys()) if a.get(k) != b.get(k)]
 
 
+def _config(trial: dict, rows: dict[str, dict]) -> dict[str, str]:
+    """A trial's config as params: its row's run's overlaid with its own (``gdwm.tracking.full_params``)."""
+    row = rows.get(trial["tags"].get("mlflow.parentRunId", ""))
+    return full_params(trial["params"], row["params"] if row is not None else {})
+
+
 def trial_page(ctx: Context, run_id: str) -> dict[str, Any]:
     """A trial's (or a ``gdwm run``'s) page data: its sweep, the row compared with and the config diff, stages."""
     run = ctx.store.run(run_id)
@@ -345,7 +352,8 @@ def trial_page(ctx: Context, run_id: str) -> dict[str, Any]:
             ]
             compared = others[0] if others else None
         if compared is not None:
-            diff = _flat_diff(compared["params"], run["params"])
+            rows = {r["run_id"]: r for r in sweep.rows} | ({parent["run_id"]: parent} if parent is not None else {})
+            diff = _flat_diff(_config(compared, rows), _config(run, rows))
 
     stages = []
     names = list(cells) or sorted({k.removeprefix("gdwm.stage_key.") for k in tags if k.startswith("gdwm.stage_key.")})
