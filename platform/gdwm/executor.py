@@ -130,6 +130,9 @@ class StageResult:
     reused: str = COMPUTED
     """Where the output came from: ``COMPUTED`` now, or an entry of the same / other / unknown code (per-scene
     stages: the least trustworthy of their scenes')."""
+    registered: bool | None = None
+    """Whether its run registered zoo versions: known (False: none) for a stage this launch computed whole, None
+    (perhaps) for a cache hit or a per-scene stage; a trial's zoo lineage searches only the runs that may have."""
 
 
 SEED_KEY = "seed"
@@ -296,8 +299,9 @@ def _context(sd: StageDef, key: str, subset, env: RunEnv, results, out_dir: Path
     )
 
 
-def _execute(sd, key, base, subset, env, results, tracker, scene=None, state=None) -> tuple[str, dict]:
-    """Run the stage function into a temp dir and publish it; returns (local entry dir, manifest extra)."""
+def _execute(sd, key, base, subset, env, results, tracker, scene=None, state=None) -> tuple[str, dict, bool]:
+    """Run the stage function into a temp dir and publish it; returns (local entry dir, manifest extra, whether it
+    registered zoo versions)."""
     cache = Cache(env.cache_uri)
     with tempfile.TemporaryDirectory(prefix=f"gdwm-{sd.name}-") as tmp:
         out = Path(tmp) / "out"
@@ -327,11 +331,12 @@ def _execute(sd, key, base, subset, env, results, tracker, scene=None, state=Non
             base=base,
             replace=env.reuse.get(sd.name) == NONE,
         )
-        if m.run_id == tracker.run_id:  # else another attempt published this key first (and registered its own)
+        ours = m.run_id == tracker.run_id  # else another attempt published this key first (and registered its own)
+        if ours:
             for r in ctx.registrations:
                 tags = {**lineage_tags(sd.name, key, m.upstream, m.extra, scene), **r.tags}
                 env.tracking.register_component(m.run_id, r.name, str(out / r.path), r.variant, tags)
-        return str(cache.materialize(m)), dict(m.extra)
+        return str(cache.materialize(m)), dict(m.extra), ours and bool(ctx.registrations)
 
 
 class ScopedTracker(Tracker):
@@ -375,13 +380,13 @@ def _compute(sd: StageDef, key: str, base: str, subset: dict, env: RunEnv, resul
     _progress(env, None, "running")
     tracker = Tracker(env.sink, run_id)
     try:
-        path, extra = _execute(sd, key, base, subset, env, results, tracker)
+        path, extra, registered = _execute(sd, key, base, subset, env, results, tracker)
     except Exception as e:
         tb = traceback.format_exc()
         _end_failed(env, run_id, tb)
         raise StageFailed(sd.name, {None: tb}) from e
     env.tracking.end_run(run_id, "FINISHED")
-    return StageResult(sd.name, key, False, run_id, path, extra=extra, base=base)
+    return StageResult(sd.name, key, False, run_id, path, extra=extra, base=base, registered=registered)
 
 
 def _key_lock(cache: Cache, env: RunEnv, stage: str, scene: str | None, key: str) -> KeyLock:
@@ -425,7 +430,7 @@ class SceneWorker:
                 return str(cache.materialize(hit))
             _progress(env, scene, "running")
             tracker = ScopedTracker(env.sink, run_id, f"{scene}/")
-            path, _ = _execute(self.sd, key, base, subset, env, results, tracker, scene, self.state)
+            path, _, _ = _execute(self.sd, key, base, subset, env, results, tracker, scene, self.state)
         _progress(env, scene, "done")
         return path
 

@@ -881,7 +881,7 @@ def _finish_trial(writes: WriteQueue, layout: Layout, t: Trial, outcomes: dict[s
         # the zoo versions this trial's stages registered carry its sweep, trial and key metrics
         lineage = {"gdwm.sweep": layout.sweep.name, "gdwm.trial": t.run_id, "gdwm.row": t.label}
         w.version_tags = lineage | metric_tags({k: v for k, v in res.metrics.items() if not k.startswith("count/")})
-        w.versions_of = sorted({r.run_id for r in res.results.values() if r.run_id})
+        w.versions_of = sorted({r.run_id for r in res.results.values() if r.run_id and r.registered is not False})
     w.end = "FINISHED" if own_run and not res.blocked else None
     writes.put(w)
     return res

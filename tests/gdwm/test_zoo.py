@@ -273,3 +273,14 @@ def test_zoo_load_writes_only_into_a_folder_gdwm_owns(tmp_path, capsys):
     assert (mine / "w.bin").read_bytes() == b"my own file" and sorted(os.listdir(mine)) == ["w.bin"]
     assert main([*args, f"args.out={tmp_path / 'fresh'}"]) == 0
     assert (tmp_path / "fresh" / ".gdwm-download").is_file() and "MLmodel" in os.listdir(tmp_path / "fresh")
+
+
+def test_a_sweep_tags_the_versions_its_trials_registered_with_their_lineage(tmp_path):
+    """The versions a sweep's stages registered carry the sweep, the row and the trial's run (a trial whose stages
+    registered nothing skips the zoo search: ``StageResult.registered``)."""
+    z = Zoo(tmp_path)
+    _ok(z.gdwm("sweep", "sweep=toy_zoo_rows", f"data.root={z.data}"))
+    trials = {r.data.tags["gdwm.row"]: r.info.run_id for r in z.client().search_runs(
+        [z.client().get_experiment_by_name("gdwm").experiment_id], "tags.`gdwm.kind` = 'trial'")}  # fmt: skip
+    lineage = {v["gdwm.row"]: (v["gdwm.sweep"], v["gdwm.trial"]) for v in z.versions().values()}
+    assert lineage == {"v3": ("toy_zoo_rows", trials["v3"]), "v4": ("toy_zoo_rows", trials["v4"])}
