@@ -360,6 +360,8 @@ class Layout:
     """Row and trial runs an earlier launch of this one recorded an environment on (``gdwm.environment``)."""
     created: set[str] = field(default_factory=set, init=False)
     """Row and trial runs ``open`` created, with the tags its ``run_tags`` gave (the environment record's)."""
+    _parent_params: dict[str, str] | None = field(default=None, init=False)
+    """The params of the ``gdwm run`` run ``open`` created (None: found again, or a sweep)."""
 
     @property
     def stage_tags(self) -> dict[str, str]:
@@ -384,12 +386,11 @@ class Layout:
                 {"gdwm.seed": str(seeds[0])} if len(seeds) == 1 else {}))  # fmt: skip
         found = self._earlier(tracking)
         # a row's run holds its config as params (its first trial's; its seeds differ in the seed alone), a trial's
-        # run what differs from it (gdwm.tracking.own_params); a gdwm run's trials are under the launch's run
-        row_params = {
-            id(row): config_params(next(t for t in trials if t.row is row).cfg) | factor_params(row)
-            if self.sweep else config_params(cfg)
-            for row in rows
-        }  # fmt: skip
+        # run what differs from it (gdwm.tracking.own_params), where the row's run is created now (one an earlier
+        # launch made holds that launch's config); a gdwm run's trials are under the launch's run
+        inherited: dict[int, dict[str, str]] = {}
+        if self.sweep is None and self._parent_params is not None:
+            inherited[id(rows[0])] = self._parent_params
         reopened: list[RunWrite] = []
         new_rows: list[tuple[Row, NewRun]] = []
         for row in rows:
@@ -401,7 +402,8 @@ class Layout:
                 row.run_id = run_id
                 reopened.append(RunWrite(run_id, tags=tags, reopen=True))
                 continue
-            params = row_params[id(row)]
+            cfg0 = next(t for t in trials if t.row is row).cfg
+            params = inherited[id(row)] = config_params(cfg0) | factor_params(row)
             new_rows.append((row, NewRun(f"{self.sweep.name}/{row.label}", tags | born, parent, params)))
         for (row, _), run_id in zip(new_rows, tracking.create_runs([n for _, n in new_rows]), strict=True):
             row.run_id = run_id
@@ -419,7 +421,9 @@ class Layout:
                 continue
             name = f"{self.sweep.name}/{t.name}" if self.sweep else f"seed-{t.seed}"
             factors = factor_params(t.row) if self.sweep else {}
-            params = own_params(config_params(t.cfg) | factors, row_params[id(t.row)], keep=factors)
+            params = config_params(t.cfg) | factors
+            if (row_params := inherited.get(id(t.row))) is not None:
+                params = own_params(params, row_params, keep=factors)
             new_trials.append((t, NewRun(name, tags | born, t.row.run_id, params)))
         for (t, _), run_id in zip(new_trials, tracking.create_runs([n for _, n in new_trials]), strict=True):
             t.run_id = run_id
@@ -460,7 +464,8 @@ class Layout:
         if run_id is None:
             tags |= {"gdwm.pipeline": self.pipeline}
             run_id = tracking.create_run(f"run-{self.pipeline}-{tags['gdwm.run_key'][:8]}", tags, None)
-            tracking.log_params(run_id, config_params(cfg))
+            self._parent_params = config_params(cfg)
+            tracking.log_params(run_id, self._parent_params)
         return run_id
 
     def _row_tags(self, row: Row) -> dict[str, str]:

@@ -19,6 +19,7 @@ import mlflow
 import pytest
 
 from gdwm.cache import Cache
+from gdwm.tracking.params import full_params
 from tests.gdwm.toydata import make_dataset
 
 pytestmark = pytest.mark.heavy(5)
@@ -173,6 +174,10 @@ def test_seeds_run_one_trial_each_and_share_seed_free_stages(first_run, tmp_path
     assert {k: t.info.status for k, t in trials.items()} == {"0": "FINISHED", "1": "FINISHED", "2": "FAILED"}
     assert {t.data.tags["mlflow.parentRunId"] for t in trials.values()} == {parent.info.run_id}
     assert trials["2"].data.tags["gdwm.failed_stage"] == "lora"
+    # the run holds the config as params; a trial's run what differs from it: its seed and the seeds it sets
+    for seed in ("1", "2"):
+        assert dict(trials[seed].data.params) == {"seed": seed, "model.llm.seed": seed, "model.selector.seed": seed}
+    assert full_params(trials["1"].data.params, parent.data.params)["stage.toy_lora.rank"] == "4"
     acc = [12 * (4 + seed_noise(s)) for s in (0, 1)]  # rank 4, 3 steps, 4 dims
     assert parent.data.metrics["acc"] == pytest.approx(sum(acc) / 2) and parent.data.tags["gdwm.n.acc"] == "2"
     assert parent.info.status == "FAILED"

@@ -114,6 +114,7 @@ def test_rerun_is_all_cached_and_extending_runs_only_new_stages(swept, tmp_path)
     assert sorted(trials) == ["rank 2", "rank 4", "rank 6", "rank 8"] and len(toy.runs("trial")) == 4
     assert len(toy.runs("sweep")) == 1  # the same sweep run continued
     assert trials["rank 6"].data.metrics["acc"] == 72.0
+    assert trials["rank 6"].data.params == {"factor.Rank": "6"}  # its new row's run holds the config
     assert len(toy.runs("row")) == 4
 
 
