@@ -312,8 +312,8 @@ class TrackingBackend:
 
     def _artifact_repo(self, run_id: str) -> ArtifactRepository | None:
         """The artifact store of a run this backend created, from the URI its creation returned: MLflow's client asks
-        the store for the run first, one request per run a process logs a file to (3 of a no-op trial's ~30 requests
-        to a team server). None for other runs (MLflow's client finds theirs)."""
+        the store for the run first, one request per run a process logs a file to (3 a no-op trial, when it sent ~30
+        requests to a team server). None for other runs (MLflow's client finds theirs)."""
         if (uri := self._artifact_uris.get(run_id)) is None:
             return None
         from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
