@@ -161,7 +161,8 @@ def test_a_stage_run_shorter_than_the_sampling_interval_costs_no_request_for_sys
     key = "system/system_memory_usage_megabytes"
     long = backend.create_run("long", {"gdwm.stage": "lora"})
     wait_for(lambda: len(backend.metric_history(long, key)) >= 1, timeout_s=60)
+    long_monitor = backend._monitors[long]
     backend.end_run(long)
-    assert gets() > before  # it asked, interval by interval
+    assert long_monitor.started and gets() > before  # it asked, interval by interval
     short_run = mlflow.MlflowClient(server.uri).get_run(short)
     assert (short_run.info.status, [k for k in short_run.data.metrics if k.startswith("system/")]) == ("FINISHED", [])

@@ -434,16 +434,18 @@ class _LateMonitor:
 
     @property
     def started(self) -> bool:
+        """Whether MLflow's monitor was ever started (it stays set once the run ended)."""
         return self._monitor is not None
 
     def finish(self) -> None:
-        """Stop sampling (the samples so far flushed); a monitor not started yet never starts."""
+        """Stop sampling (the samples so far flushed); a monitor not started yet never starts. Once only."""
         self._timer.cancel()
         with self._lock:
+            if self._ended:
+                return
             self._ended = True
-            monitor, self._monitor = self._monitor, None
-        if monitor is not None:
-            monitor.finish()
+        if self._monitor is not None:
+            self._monitor.finish()
 
 
 def _refused(uri: str, experiment: str, e: MlflowException) -> PermissionError | None:
