@@ -36,9 +36,31 @@ from gdwm.tracking.params import flatten_params, relative_paths
 from gdwm.zoo.registry import lineage_tags
 
 TAG_STAGE, TAG_KEY, TAG_VERSION, TAG_SCENES = "gdwm.stage", "gdwm.cache_key", "gdwm.version", "gdwm.scenes"
-TAG_CODE = "gdwm.code"
+TAG_CODE, TAG_CODE_RUN = "gdwm.code", "gdwm.code_run"
+"""On a stage run: its code fingerprint's digest, and the run holding that fingerprint as ``code_artifact(digest)``
+(the launch's run; absent on runs that hold it themselves as ``code.json``: see ``read_code_record``)."""
 TAG_RECOMPUTES = "gdwm.recomputes"
 """On a stage run that recomputed a key whose earlier run had finished: that run's id."""
+CODE_JSON = "code.json"
+"""A stage run's own code record (runs of gdwm before launch-level records, or a stage the launch did not plan)."""
+
+
+def code_artifact(digest: str) -> str:
+    """Where a launch's run holds the code fingerprint of that digest (files with their hashes, libraries)."""
+    return f"code/{digest}.json"
+
+
+def read_code_record(client: Any, run: Any, dst: str) -> dict[str, Any] | None:
+    """The code fingerprint behind a stage run (``mlflow.entities.Run``), downloaded with ``client`` into ``dst``:
+    from the run ``gdwm.code_run`` names, else the run's own ``code.json``; None for a run without ``gdwm.code``."""
+    digest = run.data.tags.get(TAG_CODE)
+    if digest is None:
+        return None
+    holder = run.data.tags.get(TAG_CODE_RUN)
+    path = (holder, code_artifact(digest)) if holder else (run.info.run_id, CODE_JSON)
+    return json.loads(Path(client.download_artifacts(*path, dst)).read_text())
+
+
 SAME_CODE, ALL, NONE = "same_code", "all", "none"
 """``cache.reuse`` modes (``gdwm.config.ReuseMode``)."""
 COMPUTED, REUSED_SAME, REUSED_OTHER, REUSED_UNKNOWN = "", "same code", "other code", "unknown code"
@@ -97,6 +119,9 @@ class RunEnv:
     """Where stages read zoo versions from (``ctx.zoo_path``); writes go through ``sink``."""
     code: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     """Stage -> its code fingerprint (``gdwm.fingerprint.CodeFingerprint.as_dict``); its digest enters the key."""
+    code_recorded: frozenset[str] = frozenset()
+    """The fingerprint digests ``parent_run_id`` holds as ``code_artifact(digest)`` (the launch writes each once);
+    a stage run whose code is among them points there instead of holding ``code.json`` itself."""
     reuse: Mapping[str, str] = field(default_factory=dict)
     """Stage -> ``cache.reuse`` mode (default ``same_code``)."""
     verify: bool = True
@@ -266,12 +291,17 @@ def _open_stage_run(env: RunEnv, sd: StageDef, key: str, subset: Mapping, tags: 
     invalidated entry, a re-run scene, a forced recompute) a new run is created, tagged ``gdwm.recomputes`` with the
     original, whose history stays as it was. A new run carries the stage's params (paths relative to the workdir,
     the checkpoint root's parent: params describe the stage, not the machine) and the code behind its key (tag
-    ``gdwm.code``, artifact ``code.json``: digest, files and libraries)."""
+    ``gdwm.code``; the fingerprint's digest, files and libraries on the launch's run, ``gdwm.code_run``, where the
+    launch recorded it, else the run's own ``code.json``: ``read_code_record``)."""
     fp = env.code.get(sd.name)
-    extra = dict(tags or {}) | ({TAG_CODE: fp["digest"]} if fp is not None else {})
+    extra, texts = dict(tags or {}), {}
+    if fp is not None and fp["digest"] in env.code_recorded and env.parent_run_id:
+        extra |= {TAG_CODE: fp["digest"], TAG_CODE_RUN: env.parent_run_id}  # one record per launch, not per run
+    elif fp is not None:
+        extra[TAG_CODE] = fp["digest"]
+        texts = {CODE_JSON: json.dumps(fp, indent=1, sort_keys=True)}
     new_tags = {TAG_STAGE: sd.name, TAG_KEY: key, TAG_VERSION: sd.version, "gdwm.kind": "stage", **env.run_tags}
     params = relative_paths(flatten_params(dict(subset)), Path(env.checkpoint_root).parent)
-    texts = {"code.json": json.dumps(fp, indent=1, sort_keys=True)} if fp is not None else {}
     new = NewRun(f"{sd.name}-{key[:8]}", new_tags | extra, env.parent_run_id, params, texts)
     resumed = {"gdwm.resumed": "true"} | extra
     return env.tracking.keyed_run({TAG_KEY: key, TAG_STAGE: sd.name}, new, resumed, TAG_RECOMPUTES)

@@ -54,6 +54,7 @@ from gdwm.executor import (
     REUSED_SAME,
     StageFailed,
     StageResult,
+    code_artifact,
     run_scene_stage,
     run_stage,
     stage_config,
@@ -90,7 +91,7 @@ from gdwm.tracking import (
     open_tracking,
     process_owner,
 )
-from gdwm.tracking.params import flatten_params, own_params, relative_paths
+from gdwm.tracking.params import PARAMS_BASE_TAG, flatten_params, own_params, relative_paths
 from gdwm.zoo.registry import metric_tags
 
 __all__ = ["PlanError", "RunError", "launch", "run_pipeline"]
@@ -362,6 +363,8 @@ class Layout:
     """Row and trial runs ``open`` created, with the tags its ``run_tags`` gave (the environment record's)."""
     _parent_params: dict[str, str] | None = field(default=None, init=False)
     """The params of the ``gdwm run`` run ``open`` created (None: found again, or a sweep)."""
+    _sweep_params: dict[str, str] | None = field(default=None, init=False)
+    """The params a sweep's run holds, found again (None: a sweep run ``open`` creates, or a ``gdwm run``)."""
 
     @property
     def stage_tags(self) -> dict[str, str]:
@@ -403,8 +406,10 @@ class Layout:
                 reopened.append(RunWrite(run_id, tags=tags, reopen=True))
                 continue
             cfg0 = next(t for t in trials if t.row is row).cfg
-            params = inherited[id(row)] = config_params(cfg0) | factor_params(row)
-            new_rows.append((row, NewRun(f"{self.sweep.name}/{row.label}", tags | born, parent, params)))
+            inherited[id(row)] = config_params(cfg0) | factor_params(row)
+            new_rows.append((row, NewRun(f"{self.sweep.name}/{row.label}", tags | born, parent, inherited[id(row)])))
+        if new_rows:
+            self._trim_rows(tracking, parent, new_rows)
         for (row, _), run_id in zip(new_rows, tracking.create_runs([n for _, n in new_rows]), strict=True):
             row.run_id = run_id
             self.created.add(run_id)
@@ -442,25 +447,48 @@ class Layout:
                 self.recorded.add(r["run_id"])
         return out
 
-    def _find(self, tracking: TrackingClient, tags: dict[str, str]) -> str | None:
+    def _trim_rows(self, tracking: TrackingClient, parent: str, new_rows: list[tuple[Row, NewRun]]) -> None:
+        """New rows' runs record what differs from the sweep's run (``PARAMS_BASE_TAG``; their factors always): a
+        sweep run made now gets, once, the params every new row shares; one found again keeps its own (none: a sweep
+        of gdwm before 2026-12-06, under which rows record their whole config). A row lacking one of the sweep run's
+        keys records its whole config (an overlay can't remove a key). Three requests less a row to a team's server.
+        """
+        base = self._sweep_params
+        if base is None:  # the sweep's run is new: what all its new rows share, on it
+            first, *others = (n.params for _, n in new_rows)
+            base = {k: v for k, v in first.items() if all(o.get(k) == v for o in others)}
+            base = {k: v for k, v in base.items() if not k.startswith(FACTOR_PARAM)}
+            tracking.log_params(parent, base)
+        if not base:
+            return
+        for row, new in new_rows:
+            if base.keys() <= new.params.keys():
+                new.params = own_params(new.params, base, keep=factor_params(row))
+                new.tags = {**new.tags, PARAMS_BASE_TAG: parent}
+
+    def _find(self, tracking: TrackingClient, tags: dict[str, str]) -> dict | None:
         found = tracking.search_runs(" and ".join(f"tags.`{k}` = '{v}'" for k, v in tags.items()))
         if not found:
             return None
         tracking.reopen_run(found[0]["run_id"])
         if found[0]["tags"].get(DIGEST_TAG):
             self.recorded.add(found[0]["run_id"])
-        return found[0]["run_id"]
+        return found[0]
 
     def _parent(self, tracking: TrackingClient, cfg: DictConfig) -> str:
         """A re-run (a resume after a crash, an added row) continues the same run."""
         if self.sweep is not None:
             tags = {"gdwm.kind": "sweep", "gdwm.sweep": self.sweep.name}
-            run_id = self._find(tracking, tags) or tracking.create_run(f"sweep-{self.sweep.name}", tags)
+            if (run := self._find(tracking, tags)) is not None:
+                run_id, self._sweep_params = run["run_id"], dict(run["params"])
+            else:
+                run_id = tracking.create_run(f"sweep-{self.sweep.name}", tags)
             text = OmegaConf.to_yaml(OmegaConf.structured(self.sweep))
             tracking.log_text(run_id, text, "sweep.yaml")
             return run_id
         tags = {"gdwm.kind": "run", "gdwm.run_key": self.launch_id.removeprefix("run:")}
-        run_id = self._find(tracking, tags)
+        run = self._find(tracking, tags)
+        run_id = run["run_id"] if run is not None else None
         if run_id is None:
             tags |= {"gdwm.pipeline": self.pipeline}
             run_id = tracking.create_run(f"run-{self.pipeline}-{tags['gdwm.run_key'][:8]}", tags, None)
@@ -589,6 +617,17 @@ def planned_keys(t: Trial) -> dict[str, list[str]]:
     return {n: sorted(keys) for n, keys in out.items()}
 
 
+def code_records(trials: list[Trial]) -> dict[str, Mapping[str, Any]]:
+    """Digest -> code fingerprint of each stage the trials' plans run (cached stages open no run)."""
+    out: dict[str, Mapping[str, Any]] = {}
+    for t in trials:
+        code = t.settings.get("code", {})
+        for r in t.plan:
+            if r.status != "cached" and (fp := code.get(r.stage)) is not None:
+                out[fp["digest"]] = fp
+    return out
+
+
 # ---- the driver loop -------------------------------------------------------------------------------------------
 def _root_cause(e: BaseException) -> BaseException:
     while isinstance(e, ray.exceptions.RayTaskError) and e.cause is not None and e.cause is not e:
@@ -666,15 +705,18 @@ def execute(
     monitor: Monitor,
     *,
     stage_tags: dict[str, str] | None = None,
+    code_recorded: frozenset[str] = frozenset(),
 ) -> int:
     """Submit every distinct stage key once, poll until every trial has an outcome per stage, hand each finished
     trial to ``on_trial``; returns how many stage executions ran (not cached). Every state change goes through
-    ``monitor`` (the board, the log lines, the events file, the MLflow snapshot)."""
+    ``monitor`` (the board, the log lines, the events file, the MLflow snapshot). ``code_recorded``: the code
+    fingerprints ``parent`` holds (``code_records``), which stage runs point to instead of holding them."""
     submitted: dict[tuple[str, str], ray.ObjectRef] = {}
     upstream: dict[tuple[str, str], set[tuple[str, str]]] = {}
     for t in trials:
         # the cluster profile a stage ran on: `gdwm sweep --dry-run` estimates durations from that cluster's runs
-        env = t.env(sink, parent, None, run_tags={"gdwm.cluster": str(t.cfg.cluster.name), **(stage_tags or {})})
+        env = t.env(sink, parent, None, run_tags={"gdwm.cluster": str(t.cfg.cluster.name), **(stage_tags or {})},
+                    code_recorded=code_recorded)  # fmt: skip
         refs: dict[str, ray.ObjectRef] = {}
         for name in t.order:
             sd = t.pipe.stages[name]
@@ -780,9 +822,14 @@ def launch(
             parent = layout.open(tracking, cfg, rows, trials, lambda launch_run: record_tags(rec, launch_run))
             summary.parent_run_id = parent
         with phase("environment record"):
-            # what `gdwm cache gc` keeps while each trial runs (its end replaces it with what it used), and the
-            # record on the launch's run, the runs found again tagged with it: one write
+            # what `gdwm cache gc` keeps while each trial runs (its end replaces it with what it used, where that
+            # differs), and the record on the launch's run, the runs found again tagged with it: one write
             planned = [RunWrite(t.run_id, texts={CACHE_KEYS: json.dumps(planned_keys(t), indent=1)}) for t in trials]
+            # each code fingerprint a stage run is about to need, once on the launch's run (not on every stage run)
+            code = code_records(trials)
+            if code:
+                planned.append(RunWrite(parent, texts={code_artifact(d): json.dumps(fp, indent=1, sort_keys=True)
+                                                       for d, fp in code.items()}))  # fmt: skip
             log_launch(tracking, cfg, parent, trials, layout.recorded, planned, rec=rec, tagged=layout.created)
         # on the driver's node, as the tracking actor: a worker node lost mid-run must not take the board along
         here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
@@ -821,7 +868,8 @@ def launch(
                 tracking.set_tags(parent, {"gdwm.events": monitor.events_path})
                 with phase("stages"):
                     summary.executions = execute(trials, tracking.sink, parent, on_trial, monitor,
-                                                 stage_tags=layout.stage_tags)  # fmt: skip
+                                                 stage_tags=layout.stage_tags,
+                                                 code_recorded=frozenset(code))  # fmt: skip
                 writes.flush()
                 summary.trials = [results[id(t)] for t in trials]
                 ok = summary.ok
@@ -880,7 +928,9 @@ def _finish_trial(writes: WriteQueue, layout: Layout, t: Trial, outcomes: dict[s
     links = {f"gdwm.stage_run.{n}": r.run_id for n, r in res.results.items() if r.run_id}
     w = evaluation_write(t.run_id, t.pipe, res.results)
     w.tags = links | {f"gdwm.stage_key.{n}": r.key for n, r in res.results.items()} | dict(w.tags)
-    w.texts = {CACHE_KEYS: json.dumps(entry_keys(res.results), indent=1)}
+    used = entry_keys(res.results)
+    if used != planned_keys(t):  # else the planned keys the launch wrote already say it
+        w.texts = {CACHE_KEYS: json.dumps(used, indent=1)}
     res.metrics = evaluation_metrics(t.pipe, res.results)
     if layout.sweep is not None:
         # the zoo versions this trial's stages registered carry its sweep, trial and key metrics

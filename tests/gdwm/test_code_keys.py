@@ -16,12 +16,16 @@ import sys
 import textwrap
 from collections import Counter
 from pathlib import Path
+from types import SimpleNamespace
 
 import mlflow
 import pytest
 
 from gdwm import fingerprint
 from gdwm.cache import Cache
+from gdwm.executor import RunEnv, _open_stage_run, code_artifact, read_code_record
+from gdwm.tracking import RunWrite
+from gdwm.tracking.backend import TrackingBackend
 from tests.gdwm.toydata import make_dataset
 
 pytestmark = pytest.mark.heavy(2)
@@ -266,8 +270,37 @@ def test_the_manifest_and_the_stage_run_record_the_fingerprint(plug):
     [run] = plug.stage_runs("lora")
     assert run.data.tags["gdwm.code"] == m.code["digest"]
     client = mlflow.MlflowClient(f"sqlite:///{plug.work.resolve()}/mlflow.db")
-    code = json.loads(Path(client.download_artifacts(run.info.run_id, "code.json", str(plug.root))).read_text())
-    assert code == m.code
+    # the record is the launch's, once per fingerprint: on the stage runs' parent, none on the stage run itself
+    launch = run.data.tags["mlflow.parentRunId"]
+    assert run.data.tags["gdwm.code_run"] == launch
+    assert "code.json" not in {a.path for a in client.list_artifacts(run.info.run_id)}
+    assert read_code_record(client, run, str(plug.root)) == m.code
+    records = {a.path for a in client.list_artifacts(launch, "code")}
+    assert code_artifact(m.code["digest"]) in records and len(records) == len(ALL)  # one per stage's code here
+
+
+def test_a_stage_run_points_at_its_launchs_code_record_or_holds_its_own(tmp_path):
+    """A stage whose code the launch recorded points there (``gdwm.code_run``); one it did not (a stage the plan
+    thought cached, found corrupt) holds ``code.json`` itself, as runs of older gdwm do: both read the same way."""
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    backend = TrackingBackend(uri, "gdwm", str(tmp_path / "art"))
+    launch = backend.create_run("launch", {})
+    recorded = {"digest": "d1", "files": {"a.py": "h1"}, "libraries": {"torch": "2.13.0"}}
+    own = {"digest": "d2", "files": {"b.py": "h2"}, "libraries": {}}
+    backend.write([RunWrite(launch, texts={code_artifact("d1"): json.dumps(recorded)})])
+    env = RunEnv(cache_uri=str(tmp_path / "cache"), data_root=str(tmp_path), data_fingerprint="toy", scenes=(),
+                 checkpoint_root=str(tmp_path / "ckpt"), sink=backend, parent_run_id=launch, progress=None,
+                 resources={}, code={"a": recorded, "b": own}, code_recorded=frozenset({"d1"}))  # fmt: skip
+    ids = [_open_stage_run(env, SimpleNamespace(name=n, version="1"), f"key-{n}", {"x": 1}) for n in "ab"]
+    client = mlflow.MlflowClient(uri)
+    a, b = (client.get_run(i) for i in ids)
+    assert (a.data.tags["gdwm.code"], a.data.tags["gdwm.code_run"]) == ("d1", launch)
+    assert [x.path for x in client.list_artifacts(a.info.run_id)] == []
+    assert (b.data.tags["gdwm.code"], "gdwm.code_run" in b.data.tags) == ("d2", False)
+    assert [x.path for x in client.list_artifacts(b.info.run_id)] == ["code.json"]
+    assert read_code_record(client, a, str(tmp_path / "dl-a")) == recorded
+    assert read_code_record(client, b, str(tmp_path / "dl-b")) == own
+    backend.close()
 
 
 def test_a_comment_docstring_or_reformat_reruns_nothing(plug):

@@ -83,9 +83,12 @@ def test_factors_are_params_and_intervals_metrics(terminal_sweep):
     assert m["nuinteract/plan_acc"] == 96.0
     assert m["nuinteract/plan_acc/ci_low"] < 96.0 < m["nuinteract/plan_acc/ci_high"]
     assert not [k for k in m if k.startswith(("n/", "count/"))] and row.data.tags["gdwm.n.nuinteract/plan_acc"] == "1"
-    assert not [v for v in row.data.params.values() if v.startswith("/") or "sqlite:////" in v]
-    assert row.data.params["workdir"] == "." and row.data.params["cache.uri"] == "cache"
     (sweep,) = toy.runs("sweep")
+    # the config the rows share is on the sweep's run (each row's params are what differs), paths relative
+    params = sweep.data.params | row.data.params
+    assert row.data.tags["gdwm.params_base"] == sweep.info.run_id
+    assert not [v for v in params.values() if v.startswith("/") or "sqlite:////" in v]
+    assert params["workdir"] == "." and params["cache.uri"] == "cache"
     assert "| rank 8 | 8 |" in sweep.data.tags["mlflow.note.content"]
     assert sweep.data.tags["gdwm.best_row"] == "rank 8" and sweep.data.tags["gdwm.key_metric"] == "nuinteract/plan_acc"
     snap = json.loads(Path(toy.client().download_artifacts(sweep.info.run_id, "progress/snapshot.json",

@@ -5,6 +5,7 @@ Executions are counted from the stages' own log (tests/gdwm/stages.py) and from 
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -18,7 +19,7 @@ from pathlib import Path
 import mlflow
 import pytest
 
-from gdwm.cache import Cache
+from gdwm.cache import CACHE_KEYS, Cache
 from gdwm.tracking.params import full_params
 from tests.gdwm.toydata import make_dataset
 
@@ -335,6 +336,12 @@ def test_scene_error_policy(first_run, tmp_path, policy):
     # the scenes that worked are cached either way
     new = [m for m in cache.entries("distill") if m.config == {"stage.toy_distill": {"dim": 5}}]
     assert sorted(m.scene for m in new) == ["scene-0000", "scene-0001"]
+    if policy == "skip":
+        # the run's cache_keys.json (what `gdwm cache gc` keeps for it) named all three planned scenes while it ran;
+        # its end replaced that with the two entries it used
+        run = toy.runs("run")[0]
+        used = json.loads(Path(toy.client().download_artifacts(run.info.run_id, CACHE_KEYS, str(tmp_path))).read_text())
+        assert used["distill"] == sorted(m.key for m in new)
 
 
 def _start_blocked(toy: Toy, block: str) -> subprocess.Popen:

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from gdwm.cli import main
-from gdwm.tracking.params import full_params
+from gdwm.tracking.params import PARAMS_BASE_TAG, full_params
 from tests.gdwm.test_run import Toy, _ok
 
 pytestmark = pytest.mark.heavy(3.5)
@@ -82,15 +82,77 @@ def test_one_parent_a_run_per_row_and_a_child_per_trial(swept):
     assert "acc/std" not in rows["rank 8"].data.metrics and "n/acc" not in rows["rank 8"].data.metrics
     assert rows["rank 8"].data.params["factor.Rank"] == "8"
     assert trials["rank 8"].data.tags["gdwm.factor.Rank"] == "8"
-    # the row's run holds the config; a one-seed trial's run what differs from it (nothing) and its factors
-    assert rows["rank 8"].data.params["stage.toy_lora.rank"] == "8" and len(rows["rank 8"].data.params) > 100
+    # the sweep's run holds the config its rows share, a row's run what differs (its factors' keys) and its factors,
+    # a one-seed trial's run what differs from its row (nothing) and its factors
+    shared = parent.data.params
+    assert len(shared) > 100 and "stage.toy_lora.rank" not in shared
+    assert not any(k.startswith("factor.") for k in shared)
+    assert {r.data.tags[PARAMS_BASE_TAG] for r in rows.values()} == {parent.info.run_id}
+    assert rows["rank 8"].data.params == {"factor.Rank": "8", "stage.toy_lora.rank": "8"}
     assert trials["rank 8"].data.params == {"factor.Rank": "8"}
+    full = full_params(trials["rank 8"].data.params, rows["rank 8"].data.params, shared)
+    assert full == shared | {"factor.Rank": "8", "stage.toy_lora.rank": "8"}
     # the toy evaluate_qa sums lora weights that grow by `rank` per step (3 steps, 4 dims)
     assert {k: t.data.metrics["acc"] for k, t in trials.items()} == {"rank 2": 24.0, "rank 4": 48.0, "rank 8": 96.0}
     # every trial links the stage runs it used; the shared tokenizer run is the same for all three
     tok = {t.data.tags["gdwm.stage_run.tokenizer"] for t in trials.values()}
     assert len(tok) == 1 and tok <= {r.info.run_id for r in swept.runs()}
     assert len({t.data.tags["gdwm.stage_run.lora"] for t in trials.values()}) == 3
+
+
+def test_compare_reads_each_rows_whole_config_through_its_sweeps_run(swept):
+    from gdwm.compare.runs import select
+    from gdwm.tracking.backend import TrackingBackend
+
+    (parent,) = swept.runs("sweep")
+    backend = TrackingBackend(f"sqlite:///{swept.work.resolve()}/mlflow.db", "gdwm")
+    rows = {r.label: r for r in select(backend, sweep="toy_ablation").rows}
+    backend.close()
+    assert sorted(rows) == ["rank 2", "rank 4", "rank 8"]
+    for label, row in rows.items():
+        rank = label.split()[1]
+        assert row.params == parent.data.params | {"factor.Rank": rank, "stage.toy_lora.rank": rank}
+        assert row.param("seed") == "0" and row.param("stage.toy_lora.rank") == rank  # shared, own
+
+
+def test_rows_record_what_differs_from_their_sweeps_run_unless_they_lack_one_of_its_keys(tmp_path):
+    from types import SimpleNamespace
+
+    import mlflow
+
+    from gdwm.runner import Layout
+    from gdwm.tracking import NewRun, TrackingClient
+    from gdwm.tracking.backend import TrackingBackend
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    backend = TrackingBackend(uri, "gdwm", str(tmp_path / "art"))
+    tracking, client = TrackingClient(backend), mlflow.MlflowClient(uri)
+    sweep = backend.create_run("sweep-x", {})
+
+    def row(rank: str, **params: str) -> tuple:
+        return SimpleNamespace(factors={"R": rank}), NewRun(rank, {}, sweep, {"factor.R": rank, "r": rank, **params})
+
+    # a sweep run made by this launch gets what its new rows share (factors never)
+    a, b = row("2", x="1", only_a="1"), row("4", x="1")
+    Layout(None, "sweep:x", "toy")._trim_rows(tracking, sweep, [a, b])
+    assert client.get_run(sweep).data.params == {"x": "1"}
+    assert (a[1].params, a[1].tags) == ({"factor.R": "2", "r": "2", "only_a": "1"}, {PARAMS_BASE_TAG: sweep})
+    assert (b[1].params, b[1].tags) == ({"factor.R": "4", "r": "4"}, {PARAMS_BASE_TAG: sweep})
+    # a later launch's rows under the sweep run found again: one lacking a key it holds records its whole config
+    later = Layout(None, "sweep:x", "toy")
+    later._sweep_params = {"x": "1"}
+    c, d = row("6"), row("8", x="1")
+    later._trim_rows(tracking, sweep, [c, d])
+    assert (c[1].params, c[1].tags) == ({"factor.R": "6", "r": "6"}, {})
+    assert (d[1].params, d[1].tags) == ({"factor.R": "8", "r": "8"}, {PARAMS_BASE_TAG: sweep})
+    assert client.get_run(sweep).data.params == {"x": "1"}  # not written again
+    # a sweep run of gdwm before rows recorded differences holds no params: its new rows record everything
+    old = Layout(None, "sweep:x", "toy")
+    old._sweep_params = {}
+    e = row("9", x="1")
+    old._trim_rows(tracking, sweep, [e])
+    assert (e[1].params, e[1].tags) == ({"factor.R": "9", "r": "9", "x": "1"}, {})
+    backend.close()
 
 
 def test_report_written_and_logged_to_the_sweep_run(swept):
@@ -115,6 +177,11 @@ def test_rerun_is_all_cached_and_extending_runs_only_new_stages(swept, tmp_path)
     assert len(toy.runs("sweep")) == 1  # the same sweep run continued
     assert trials["rank 6"].data.metrics["acc"] == 72.0
     assert trials["rank 6"].data.params == {"factor.Rank": "6"}  # its new row's run holds the config
+    # under the sweep's run the first launch made, which holds what its rows shared
+    (sweep_run,) = toy.runs("sweep")
+    row6 = next(r for r in toy.runs("row") if r.data.tags["gdwm.row"] == "rank 6")
+    assert row6.data.params == {"factor.Rank": "6", "stage.toy_lora.rank": "6"}
+    assert row6.data.tags[PARAMS_BASE_TAG] == sweep_run.info.run_id
     assert len(toy.runs("row")) == 4
 
 
@@ -186,17 +253,18 @@ def test_seeds_share_seed_free_stages_and_aggregate_per_row(tmp_path):
     assert all("seed" not in x.data.params for x in toy.runs() if x.data.tags["gdwm.stage"] == "distill")
     assert "sweep: 6 trials, 17 stage executions run (30 as independent runs without a cache)" in r.stdout
     rows = {x.data.tags["gdwm.row"]: x for x in toy.runs("row")}
+    (shared,) = (x.data.params for x in toy.runs("sweep"))
     trials = toy.runs("trial")
     assert len(trials) == 6 and sorted(t.data.tags["gdwm.seed"] for t in trials) == ["0", "0", "1", "1", "2", "2"]
     # a trial's run records what differs from its row's config (the seed) and its factors; the row the rest
     for t in trials:
         seed, row = t.data.tags["gdwm.seed"], rows[t.data.tags["gdwm.row"]]
         own = dict(t.data.params)
-        assert own.pop("factor.Rank") == row.data.params["factor.Rank"] and row.data.params["seed"] == "0"
+        assert own.pop("factor.Rank") == row.data.params["factor.Rank"] and shared["seed"] == "0"
         # the row's config is its first seed's: seed 0 differs in nothing; the others in `seed` and what it sets
         assert sorted(own) == ([] if seed == "0" else ["model.llm.seed", "model.selector.seed", "seed"])
         assert set(own.values()) <= {seed}
-        assert full_params(t.data.params, row.data.params)["seed"] == seed
+        assert full_params(t.data.params, row.data.params, shared)["seed"] == seed
     from tests.gdwm.stages import seed_noise
 
     # rank 4, 3 steps, 4 dims: acc = 12 * (4 + noise(seed))

@@ -30,6 +30,7 @@ from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID
 from gdwm.compare.stats import SampleSet
 from gdwm.tracking import STAGE_TAG, TrackingBackend
 from gdwm.tracking.backend import run_dict
+from gdwm.tracking.params import PARAMS_BASE_TAG, full_params
 
 REFERENCE_KIND = "reference"
 ROW_KINDS = ("row", "run", REFERENCE_KIND)
@@ -203,6 +204,18 @@ def _order(runs: list[dict]) -> list[dict]:
     return sorted(runs, key=key)
 
 
+def _inherit_params(backend: TrackingBackend, rows: list[Row], selector: str, known: dict[str, dict]) -> None:
+    """Rows that record what differs from their sweep's run (``PARAMS_BASE_TAG``) get its params under their own
+    (``gdwm.tracking.full_params``); ``known``: runs already read, the rest in one search."""
+    bases = {r.tags[PARAMS_BASE_TAG] for r in rows if PARAMS_BASE_TAG in r.tags}
+    if missing := sorted(bases - known.keys()):
+        ids = ", ".join(f"'{x}'" for x in missing)
+        known = known | {r["run_id"]: r for r in _search(backend, f"attributes.run_id IN ({ids})", selector)}
+    for r in rows:
+        if (base := known.get(r.tags.get(PARAMS_BASE_TAG, ""))) is not None:
+            r.params = full_params(r.params, base["params"])
+
+
 def newest_per_row(runs: list[dict]) -> list[dict]:
     """The newest run of each row label (``gdwm.row``), in ``runs``' order: a sweep launched again after a row's
     config or code changed holds that row twice under its parent, and the table reports what the row is now."""
@@ -241,6 +254,7 @@ def select(
     factor_params = list(factor_params or [])
     sweep_run_id = None
     known: dict[str, list[dict]] = {}
+    parents: list[dict] = []
     if sweep:
         selector = f"args.sweep={sweep}"
         parents = _search(
@@ -291,6 +305,7 @@ def select(
             f"of {backend.uri}"
         )
     rows = [_row(backend, r, factor_params, selector, known.get(r["run_id"])) for r in found]
+    _inherit_params(backend, rows, selector, {p["run_id"]: p for p in parents})
     linked = read_labels(backend, rows, selector)
     return Selection(name, selector, rows, sweep_run_id, linked)
 

@@ -88,19 +88,28 @@ def relative_paths(params: Mapping[str, str], root: str | Path) -> dict[str, str
     return out
 
 
+PARAMS_BASE_TAG = "gdwm.params_base"
+"""On a sweep's row run that records only what differs from its sweep's run: that run's id (:func:`full_params`)."""
+
+
 def own_params(params: Mapping[str, str], inherited: Mapping[str, str], keep: Iterable[str] = ()) -> dict[str, str]:
-    """What a trial run records of its config ``params`` under its row's run, which holds ``inherited``: the values
-    that differ from the row's (a seed and what it sets) and the keys ``keep`` (its factors, which MLflow's views
-    filter and plot by); :func:`full_params` puts the config back together. A 200-row sweep's trial runs repeated
+    """What a run records of its config ``params`` under a run that holds ``inherited`` (a trial under its row's, a
+    row under its sweep's): the values that differ (a seed and what it sets; a row's factors' keys) and the keys
+    ``keep`` (its factors, which MLflow's views filter and plot by); :func:`full_params` puts the config back
+    together. A 200-row sweep's trial runs repeated
     every row's ~270 params: three more requests a trial to a team's server, and every search returning them twice."""
     keep = set(keep)
     return {k: v for k, v in params.items() if k in keep or inherited.get(k) != v}
 
 
-def full_params(own: Mapping[str, str], inherited: Mapping[str, str]) -> dict[str, str]:
-    """A trial's config as params: its row's (``inherited``) overlaid with its own (:func:`own_params`); a trial run
-    that recorded its whole config (gdwm before 2026-12-06) comes back as it is."""
-    return {**inherited, **own}
+def full_params(own: Mapping[str, str], *inherited: Mapping[str, str]) -> dict[str, str]:
+    """A run's config as params: what it inherits overlaid with its own (:func:`own_params`), nearest last: a trial's
+    ``full_params(trial, row, sweep)``, where the row inherits from its sweep's run only if tagged
+    ``PARAMS_BASE_TAG``. A run that recorded its whole config (gdwm before 2026-12-06) comes back as it is."""
+    out: dict[str, str] = {}
+    for level in reversed(inherited):
+        out |= level
+    return out | dict(own)
 
 
 def batches(items: Sequence, size: int) -> Iterator[list]:

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from gdwm.progress import duration
-from gdwm.tracking.params import full_params
+from gdwm.tracking.params import PARAMS_BASE_TAG, full_params
 from gdwm.ui.live import Live, grid_from_runs, launch_live, stale_reason, trial_label
 from gdwm.ui.store import TERMINAL, Store
 
@@ -310,10 +310,14 @@ def _flat_diff(a: dict[str, str], b: dict[str, str]) -> list[tuple[str, str, str
     return [(k, a.get(k, "–"), b.get(k, "–")) for k in sorted(a.keys() | b.keys()) if a.get(k) != b.get(k)]
 
 
-def _config(trial: dict, rows: dict[str, dict]) -> dict[str, str]:
-    """A trial's config as params: its row's run's overlaid with its own (``gdwm.tracking.full_params``)."""
-    row = rows.get(trial["tags"].get("mlflow.parentRunId", ""))
-    return full_params(trial["params"], row["params"] if row is not None else {})
+def _config(trial: dict, runs: dict[str, dict]) -> dict[str, str]:
+    """A trial's config as params: its row's run's (over its sweep's run's, where the row says so) overlaid with its
+    own (``gdwm.tracking.full_params``); ``runs``: run id -> run."""
+    row = runs.get(trial["tags"].get("mlflow.parentRunId", ""))
+    if row is None:
+        return dict(trial["params"])
+    base = runs.get(row["tags"].get(PARAMS_BASE_TAG, ""))
+    return full_params(trial["params"], row["params"], base["params"] if base is not None else {})
 
 
 def trial_page(ctx: Context, run_id: str) -> dict[str, Any]:
@@ -352,8 +356,8 @@ def trial_page(ctx: Context, run_id: str) -> dict[str, Any]:
             ]
             compared = others[0] if others else None
         if compared is not None:
-            rows = {r["run_id"]: r for r in sweep.rows} | ({parent["run_id"]: parent} if parent is not None else {})
-            diff = _flat_diff(_config(compared, rows), _config(run, rows))
+            runs = {r["run_id"]: r for r in [sweep_run, *sweep.rows, *([parent] if parent is not None else [])]}
+            diff = _flat_diff(_config(compared, runs), _config(run, runs))
 
     stages = []
     names = list(cells) or sorted({k.removeprefix("gdwm.stage_key.") for k in tags if k.startswith("gdwm.stage_key.")})
