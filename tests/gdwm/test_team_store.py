@@ -8,13 +8,15 @@ pipeline (tests/gdwm/light_stages.py: three file-writing stages a trial).
 - ``gdwm compare`` and the dashboard read the server, and agree cell for cell;
 - a driver killed mid-sweep: the next launch reconciles what it left RUNNING and finishes the sweep;
 - the store going down mid-sweep (its PostgreSQL stopped): the stage fails in one line naming the tracking URI, the
-  cache keeps what was computed, the next launch continues; a PostgreSQL URI that refuses: exit 1 naming it.
+  cache keeps what was computed, the next launch continues; a PostgreSQL URI that refuses: exit 1 naming it;
+- what one more trial asks of the server, request by request (the cost per trial the scale benchmark measures).
 """
 
 from __future__ import annotations
 
 import base64
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -191,6 +193,50 @@ def _wait_file(path: Path, proc: subprocess.Popen) -> None:
             proc.kill()
             raise AssertionError(f"{path.name} never appeared: {proc.communicate()[1][-3000:]}")
         time.sleep(0.2)
+
+
+def _requests(log: str) -> Counter:
+    """The server's access log lines as ``(method, endpoint)``; artifacts by file name, the ids left out."""
+    out: Counter = Counter()
+    for m in re.finditer(r'"(GET|POST|PUT|DELETE) (/api/2\.0/[^ ?]+)', log):
+        method, path = m.groups()
+        if "/mlflow-artifacts/artifacts/" in path:
+            path = "artifact " + re.sub(r"[0-9a-f]{12,}", "<id>", path.split("/artifacts/", 2)[-1])
+        out[(method, path.removeprefix("/api/2.0/mlflow/"))] += 1
+    return out
+
+
+ORCHESTRATION = {
+    ("POST", "runs/create"): 4,  # the row's run, the trial's, a stage run for each of fit and score
+    ("POST", "runs/log-batch"): 6,  # params: the row's own, the trial's (its factor), each stage run's; the
+    # trial's outcome, the row's aggregate
+    ("POST", "runs/update"): 4,  # each of the four ends
+    ("POST", "runs/search"): 2,  # each stage run's keyed search (a killed attempt's run is reopened, not duplicated)
+    ("PUT", "artifact config.yaml"): 1,  # the trial's whole config
+    ("PUT", "artifact cache_keys.json"): 1,  # the entries it is about to use (gc keeps them while it runs)
+}
+"""What gdwm asks of the team's server for one more trial (a new row, two stage executions): 18 requests."""
+PER_TRIAL = ORCHESTRATION | {
+    ("POST", "runs/log-batch"): 7,  # and the fit stage's own metric (tests/gdwm/light_stages.py)
+    ("GET", "metrics/get-history"): 1,  # the sweep's report reads it (a training curve where it has steps)
+}
+
+
+def test_each_added_trial_costs_a_known_number_of_requests_to_the_store(team, data, tmp_path):
+    """The cost per trial on a team's server is its requests (each ~20-40 ms on 2 cores): a sweep of 3 rows asks
+    exactly 2 x ``PER_TRIAL`` more than one of 1 row (the scale benchmark's no-op trials: ``ORCHESTRATION``); a
+    change that adds a request a trial fails here, by endpoint. Snapshots are written only at the start and end
+    (``run.snapshot_s``), so nothing here depends on timing."""
+    counts = []
+    for n in (1, 3):
+        before = team.server.log.read_text()
+        _ok(Driver(tmp_path / f"n{n}", team, data).sweep(f"team_cost_{n}", "run.snapshot_s=100000"))
+        counts.append(_requests(team.server.log.read_text()[len(before) :]))
+    one, three = counts
+    # the experiment is made by whichever launch comes first
+    added = {k: (three[k] - one[k]) / 2 for k in one.keys() | three.keys() if three[k] != one[k]}
+    assert {k: v for k, v in added.items() if not k[1].startswith("experiments/")} == PER_TRIAL
+    assert sum(ORCHESTRATION.values()) == 18
 
 
 def test_a_killed_driver_leaves_no_running_run_once_the_next_launch_reconciles(team, data, tmp_path):
