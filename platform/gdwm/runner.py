@@ -456,8 +456,8 @@ class Layout:
         base = self._sweep_params
         if base is None:  # the sweep's run is new: what all its new rows share, on it
             first, *others = (n.params for _, n in new_rows)
-            base = {k: v for k, v in first.items() if all(o.get(k) == v for o in others)}
-            base = {k: v for k, v in base.items() if not k.startswith(FACTOR_PARAM)}
+            base = {k: v for k, v in first.items()
+                    if not k.startswith(FACTOR_PARAM) and all(o.get(k) == v for o in others)}  # fmt: skip
             tracking.log_params(parent, base)
         if not base:
             return
@@ -487,13 +487,12 @@ class Layout:
             tracking.log_text(run_id, text, "sweep.yaml")
             return run_id
         tags = {"gdwm.kind": "run", "gdwm.run_key": self.launch_id.removeprefix("run:")}
-        run = self._find(tracking, tags)
-        run_id = run["run_id"] if run is not None else None
-        if run_id is None:
-            tags |= {"gdwm.pipeline": self.pipeline}
-            run_id = tracking.create_run(f"run-{self.pipeline}-{tags['gdwm.run_key'][:8]}", tags, None)
-            self._parent_params = config_params(cfg)
-            tracking.log_params(run_id, self._parent_params)
+        if (run := self._find(tracking, tags)) is not None:
+            return run["run_id"]
+        tags |= {"gdwm.pipeline": self.pipeline}
+        run_id = tracking.create_run(f"run-{self.pipeline}-{tags['gdwm.run_key'][:8]}", tags, None)
+        self._parent_params = config_params(cfg)
+        tracking.log_params(run_id, self._parent_params)
         return run_id
 
     def _row_tags(self, row: Row) -> dict[str, str]:

@@ -30,7 +30,7 @@ from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID
 from gdwm.compare.stats import SampleSet
 from gdwm.tracking import STAGE_TAG, TrackingBackend
 from gdwm.tracking.backend import run_dict
-from gdwm.tracking.params import PARAMS_BASE_TAG, full_params
+from gdwm.tracking.params import PARAMS_BASE_TAG, full_params, inherited_params
 
 REFERENCE_KIND = "reference"
 ROW_KINDS = ("row", "run", REFERENCE_KIND)
@@ -212,8 +212,7 @@ def _inherit_params(backend: TrackingBackend, rows: list[Row], selector: str, kn
         ids = ", ".join(f"'{x}'" for x in missing)
         known = known | {r["run_id"]: r for r in _search(backend, f"attributes.run_id IN ({ids})", selector)}
     for r in rows:
-        if (base := known.get(r.tags.get(PARAMS_BASE_TAG, ""))) is not None:
-            r.params = full_params(r.params, base["params"])
+        r.params = full_params(r.params, inherited_params(r.tags, known))
 
 
 def newest_per_row(runs: list[dict]) -> list[dict]:

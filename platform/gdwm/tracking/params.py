@@ -112,6 +112,13 @@ def full_params(own: Mapping[str, str], *inherited: Mapping[str, str]) -> dict[s
     return out | dict(own)
 
 
+def inherited_params(tags: Mapping[str, str], runs: Mapping[str, Mapping]) -> Mapping[str, str]:
+    """The params a run with ``tags`` inherits: those of the run its ``PARAMS_BASE_TAG`` names, looked up in
+    ``runs`` (run id -> a run dict with ``params``); none when it names none, or one not in ``runs``."""
+    base = runs.get(tags.get(PARAMS_BASE_TAG, ""))
+    return base["params"] if base is not None else {}
+
+
 def batches(items: Sequence, size: int) -> Iterator[list]:
     """Consecutive slices of at most ``size`` items (the last may be shorter; none when empty)."""
     if size < 1:

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from gdwm.progress import duration
-from gdwm.tracking.params import PARAMS_BASE_TAG, full_params
+from gdwm.tracking.params import full_params, inherited_params
 from gdwm.ui.live import Live, grid_from_runs, launch_live, stale_reason, trial_label
 from gdwm.ui.store import TERMINAL, Store
 
@@ -316,8 +316,7 @@ def _config(trial: dict, runs: dict[str, dict]) -> dict[str, str]:
     row = runs.get(trial["tags"].get("mlflow.parentRunId", ""))
     if row is None:
         return dict(trial["params"])
-    base = runs.get(row["tags"].get(PARAMS_BASE_TAG, ""))
-    return full_params(trial["params"], row["params"], base["params"] if base is not None else {})
+    return full_params(trial["params"], row["params"], inherited_params(row["tags"], runs))
 
 
 def trial_page(ctx: Context, run_id: str) -> dict[str, Any]:
