@@ -1,5 +1,6 @@
-"""The consoles gdwm prints with: wide enough when piped (CI logs, tests) that tables do not wrap; text printed
-through them has its credentials masked (:func:`gdwm.redact.redact`), whatever message carries a URI."""
+"""The consoles gdwm prints with: wide enough when piped (CI logs, tests) that tables do not wrap, and a line of text
+piped is one line however long (a log is read with grep); text printed through them has its credentials masked
+(:func:`gdwm.redact.redact`), whatever message carries a URI."""
 
 from __future__ import annotations
 
@@ -16,9 +17,12 @@ def _width(stream) -> int | None:
 
 class RedactingConsole(Console):
     """A ``Console`` whose ``print`` masks credentials in its string arguments (tables and other renderables
-    are printed as given: build them from redacted text)."""
+    are printed as given: build them from redacted text). Strings printed to a pipe or file are not wrapped at
+    the console's width: only a terminal wraps a long line, and only on screen."""
 
     def print(self, *objects, **kwargs) -> None:
+        if "soft_wrap" not in kwargs and not self.is_terminal and all(isinstance(o, str) for o in objects):
+            kwargs["soft_wrap"] = True
         super().print(*(redact(o) if isinstance(o, str) else o for o in objects), **kwargs)
 
 

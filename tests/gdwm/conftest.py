@@ -6,8 +6,9 @@ import ray
 
 @pytest.fixture(scope="session")
 def ray_local():
-    """One local Ray (2 CPUs, token auth as shipped) for the whole session."""
-    ctx = ray.init(num_cpus=2, include_dashboard=False)
+    """One local Ray (2 CPUs, token auth as shipped) for the whole session: a new one, never a cluster another
+    xdist worker started meanwhile (a sim cluster's head is the machine's "current cluster" while it runs)."""
+    ctx = ray.init(address="local", num_cpus=2, include_dashboard=False)
     yield ctx
     ray.shutdown()
 

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import mlflow
 import pytest
+from rich.table import Table
 
 from gdwm.cache import MANIFEST
 from gdwm.redact import MASK, redact, redact_config
@@ -90,6 +91,26 @@ def test_params_and_consoles_mask_credentials():
     out = io.StringIO()
     RedactingConsole(file=out, width=200).print("store https://alice:pw@host unreadable", markup=False)
     assert out.getvalue() == "store https://alice:***@host unreadable\n"
+
+
+def test_a_piped_line_of_text_stays_one_line_and_a_table_keeps_the_width():
+    """A 202-character line (a sim cluster's placement, say) reaches a pipe whole at width 160; a table does not
+    grow past the width; a terminal still wraps text at its width."""
+    node = "sim-worker-{}: RayTrainWorker x4, SceneWorker x2, _Answerer x1"
+    line = "sim placement: " + "; ".join(node.format(i) for i in (1, 2, 3))
+    out = io.StringIO()
+    console = RedactingConsole(file=out, width=160, highlight=False)
+    console.print(line, markup=False)
+    table = Table("a", "b")
+    table.add_row("x" * 120, "y" * 120)
+    console.print(table)
+    lines = out.getvalue().splitlines()
+    assert len(line) > 160 and lines[0] == line
+    assert max(len(ln) for ln in lines[1:]) == 160
+    tty = io.StringIO()
+    RedactingConsole(file=tty, width=160, force_terminal=True, color_system=None).print(line, markup=False)
+    wrapped = tty.getvalue().splitlines()
+    assert len(wrapped) == 2 and max(len(ln) for ln in wrapped) <= 160 and " ".join(wrapped).split() == line.split()
 
 
 def test_config_show_masks_credentials():
