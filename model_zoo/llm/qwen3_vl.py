@@ -202,9 +202,18 @@ class WorldLLM:
         it = iter(counts)
         return batch["pixel_values"], grid_thw, [[next(it) for _ in views] for views in images]
 
-    def image_tokens(self, pixel_values: torch.Tensor, image_grid_thw: torch.Tensor) -> list[torch.Tensor]:
-        """The vision tower's merged tokens per image, ``[M_i, H]`` (what the LLM consumes; Y_I for L_KL)."""
-        out = self.model.get_image_features(pixel_values.to(self.device), image_grid_thw.to(self.device))
+    def image_features(self, pixel_values: torch.Tensor, image_grid_thw: torch.Tensor) -> Any:
+        """The vision tower's output on a batch's images (merged tokens and deepstack features per image): what the
+        LLM's forward computes from ``pixel_values``, for a caller that needs the tokens too (``image_features=``
+        of ``forward`` and ``loss`` then skips the tower's second pass)."""
+        return self.model.get_image_features(pixel_values.to(self.device), image_grid_thw.to(self.device))
+
+    def image_tokens(
+        self, pixel_values: torch.Tensor, image_grid_thw: torch.Tensor, features: Any = None
+    ) -> list[torch.Tensor]:
+        """The vision tower's merged tokens per image, ``[M_i, H]`` (what the LLM consumes; Y_I for L_KL), from
+        ``features`` (``image_features``) when given."""
+        out = features if features is not None else self.image_features(pixel_values, image_grid_thw)
         return list(out.pooler_output)
 
     def text_embeddings(self, input_ids: torch.Tensor) -> torch.Tensor:
@@ -259,6 +268,7 @@ class WorldLLM:
         z_BFH: torch.Tensor | None,
         pixel_values: torch.Tensor | None,
         image_grid_thw: torch.Tensor | None,
+        image_features: Any = None,
     ) -> dict[str, Any]:
         dev = self.device
         ids = batch["input_ids"].to(dev)
@@ -282,11 +292,14 @@ class WorldLLM:
         inputs = {"input_ids": ids, "attention_mask": batch["attention_mask"].to(dev)}
         if pixel_values is not None:
             inputs |= {
-                "pixel_values": pixel_values.to(dev),
                 "image_grid_thw": image_grid_thw.to(dev),
                 # M-RoPE: image slots (1) get 3-D grid positions, everything else (0) incl. Gaussian slots 1-D ones
                 "mm_token_type_ids": (ids == self.image_token_id).int(),
             }
+            if image_features is None:
+                inputs["pixel_values"] = pixel_values.to(dev)
+            else:  # the tower's output on these pixel_values, computed once by the caller
+                inputs["mm_encoder_outputs"] = {"image": image_features}
         return inputs
 
     def forward(
@@ -297,9 +310,11 @@ class WorldLLM:
         image_grid_thw: torch.Tensor | None = None,
         with_labels: bool = False,
         output_hidden_states: bool = False,
+        image_features: Any = None,
     ) -> Any:
-        """The model's ``CausalLMOutputWithPast`` on a collated batch (``.loss`` with ``with_labels``)."""
-        inputs = self._inputs(batch, z_BFH, pixel_values, image_grid_thw)
+        """The model's ``CausalLMOutputWithPast`` on a collated batch (``.loss`` with ``with_labels``);
+        ``image_features``: ``image_features(pixel_values, image_grid_thw)`` already computed (the same output)."""
+        inputs = self._inputs(batch, z_BFH, pixel_values, image_grid_thw, image_features)
         if with_labels:
             inputs["labels"] = batch["labels"].to(self.device)
         with self.inject(z_BFH):
@@ -322,15 +337,17 @@ class WorldLLM:
         z_BFH: torch.Tensor | None = None,
         pixel_values: torch.Tensor | None = None,
         image_grid_thw: torch.Tensor | None = None,
+        image_features: Any = None,
     ) -> torch.Tensor:
         """Eq. L_LM: next-token cross-entropy on the response tokens, averaged over them (the model's shift).
 
         The paper sums over a sample's tokens and averages over samples; the token mean differs by a
-        length-dependent scale only.
+        length-dependent scale only. ``image_features``: as ``forward``'s.
         """
         if not bool((batch["labels"] != -100).any()):
             raise ValueError("llm/qwen3_vl: the batch has no response tokens (all labels are -100)")
-        return self.forward(batch, z_BFH, pixel_values, image_grid_thw, with_labels=True).loss
+        out = self.forward(batch, z_BFH, pixel_values, image_grid_thw, with_labels=True, image_features=image_features)
+        return out.loss
 
     @torch.no_grad()
     def generate(

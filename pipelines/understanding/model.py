@@ -239,10 +239,13 @@ class WorldModel(nn.Module):
         g_BKH = self.projection(c["xyz"], c["scale"], c["rotation"], c["opacity"], c["feature"])
         return self.fine(g_BKH, c["mask"], text_BLH, text_mask)
 
-    def image_tokens(self, enc: dict) -> tuple[torch.Tensor, torch.Tensor]:
-        """Foundation image tokens Y_I per sample, padded to [B, M, H] with a mask (KL targets)."""
+    def image_tokens(self, enc: dict, features: Any = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Foundation image tokens Y_I per sample, padded to [B, M, H] with a mask (KL targets); from ``features``
+        (the vision tower's output on the batch's images, ``WorldLLM.image_features``) when given."""
         per_image = (
-            self.llm.image_tokens(enc["pixel_values"], enc["image_grid_thw"]) if enc["pixel_values"] is not None else []
+            self.llm.image_tokens(enc["pixel_values"], enc["image_grid_thw"], features)
+            if enc["pixel_values"] is not None
+            else []
         )
         rows, i = [], 0
         for n in enc["image_counts"]:
@@ -263,11 +266,17 @@ class WorldModel(nn.Module):
         """L_LM + lambda_KL alpha(t) L_KL on one batch, and its parts for logging (a forward, so DDP can wrap it)."""
         enc = self.encode(samples, store, with_answer=True)
         z, z_mask = self.world_tokens(samples, store, enc) if enc["gaussian"] else (None, None)
-        l_lm = self.llm.loss(enc["batch"], z, enc["pixel_values"], enc["image_grid_thw"])
+        align = z is not None and self.comp.alignment.name != "none"
+        # L_KL's targets are the tokens the LLM consumes: one pass of the vision tower serves both (the tower is
+        # frozen and draws no random numbers, so the loss and its gradients are those of two passes)
+        features = None
+        if align and enc["pixel_values"] is not None:
+            features = self.llm.image_features(enc["pixel_values"], enc["image_grid_thw"])
+        l_lm = self.llm.loss(enc["batch"], z, enc["pixel_values"], enc["image_grid_thw"], image_features=features)
         parts = {"loss_lm": float(l_lm.detach())}
         total = l_lm
-        if z is not None and self.comp.alignment.name != "none":
-            img, img_mask = self.image_tokens(enc)
+        if align:
+            img, img_mask = self.image_tokens(enc, features)
             weighted, raw = self.align(z, z_mask, img.detach(), img_mask, step)
             total = total + weighted
             parts["loss_kl"] = float(raw.detach())

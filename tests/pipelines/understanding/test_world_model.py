@@ -228,3 +228,39 @@ def test_frozen_features_decode_exactly_as_distilled(synth_small, distilled16, t
     distilled = load_decoders({scene: distilled16[scene]})[scene][1]
     with torch.no_grad():
         assert torch.equal(model.feature_decoder(scene)(codes), distilled(codes))
+
+
+def test_one_pass_of_the_vision_tower_serves_the_lm_loss_and_the_kl_targets(synth_small, distilled16, tiny_llm_dir):
+    """With L_KL on, a training step runs the vision tower once: the loss and every gradient equal, bit for bit,
+    those of the tower run twice (once inside the LLM's forward, once for the KL targets)."""
+    comp = components({}, "driving_aware", "query_xattn", "kl")
+    ds = GSQADataset(synth_small)
+    samples, _ = load_samples(ds, "train", distilled16, need_gaussians=True)
+    store = FrameStore(ds, distilled16, "clear", 3)
+
+    def step(shared: bool) -> tuple[torch.Tensor, dict[str, torch.Tensor], int]:
+        torch.manual_seed(3)  # the LoRA's init and dropout draw the same numbers in both
+        model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), distilled16, seed=0)
+        model.add_lora(LoraStageConfig(rank=4, alpha=8, dropout=0.1))
+        model.freeze_llm()
+        model.train()
+        passes = []
+        model.llm.model.model.visual.register_forward_hook(lambda *_: passes.append(1))
+        if shared:
+            loss, _ = model(samples[:2], store, 5)
+        else:  # the two-pass composition: the LLM's forward computes the tower itself, then the KL targets again
+            enc = model.encode(samples[:2], store, with_answer=True)
+            z, z_mask = model.world_tokens(samples[:2], store, enc)
+            loss = model.llm.loss(enc["batch"], z, enc["pixel_values"], enc["image_grid_thw"])
+            img, img_mask = model.image_tokens(enc)
+            loss = loss + model.align(z, z_mask, img.detach(), img_mask, 5)[0]
+        loss.backward()
+        grads = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+        return loss.detach(), grads, len(passes)
+
+    loss1, grads1, passes1 = step(shared=True)
+    loss2, grads2, passes2 = step(shared=False)
+    assert (passes1, passes2) == (1, 2)
+    assert torch.equal(loss1, loss2)
+    assert sorted(grads1) == sorted(grads2) and any("lora_" in n for n in grads1)
+    assert [n for n in grads1 if not torch.equal(grads1[n], grads2[n])] == []
