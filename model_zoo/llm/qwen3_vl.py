@@ -20,6 +20,8 @@ Legend: B batch rows, F Gaussian tokens per row (K_f), H LLM hidden size, L sequ
 from __future__ import annotations
 
 import contextlib
+import hashlib
+from collections import OrderedDict
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -50,6 +52,8 @@ EXPECTED_FILES = (
     "config.json, model.safetensors (or model.safetensors.index.json with its shards), tokenizer.json (or vocab.json "
     "and merges.txt); preprocessor_config.json optional"
 )
+PROCESSED_BYTES = 256 * 2**20
+"""What ``WorldLLM`` keeps of processed images (``pixel_values`` rows by image content) per model."""
 
 
 def _check_dir(path: Path) -> None:
@@ -97,6 +101,8 @@ class WorldLLM:
         self.tokenizer = tokenizer
         self.image_processor = image_processor
         self.cfg = cfg
+        self._processed_lru: OrderedDict[tuple, tuple[torch.Tensor, torch.Tensor]] = OrderedDict()
+        self._processed_total = 0
         self.gauss_token_id = add_gauss_token(model, tokenizer)
         ids = {t: tokenizer.convert_tokens_to_ids(t) for t in (PAD, IM_END, IMAGE_PAD, VISION_START, VISION_END)}
         if ids[IMAGE_PAD] != model.config.image_token_id:
@@ -196,11 +202,28 @@ class WorldLLM:
                 flat.append(img)
         if not flat:
             return None, None, [[] for _ in images]
-        batch = self.image_processor(images=flat, input_data_format="channels_last", return_tensors="pt")
-        grid_thw = batch["image_grid_thw"]
+        per_image = [self._processed(img) for img in flat]
+        pixel_values = torch.cat([p for p, _ in per_image])
+        grid_thw = torch.cat([g for _, g in per_image])
         counts = (grid_thw.prod(-1) // self.model.config.vision_config.spatial_merge_size**2).tolist()
         it = iter(counts)
-        return batch["pixel_values"], grid_thw, [[next(it) for _ in views] for views in images]
+        return pixel_values, grid_thw, [[next(it) for _ in views] for views in images]
+
+    def _processed(self, img: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """The processor's ``pixel_values`` rows and ``image_grid_thw`` row of one image, kept by the image's content
+        (an LRU of ``PROCESSED_BYTES``): training steps see the same camera views again and again, and the processor
+        treats each image of a batch alone, so a batch's inputs are its images' rows concatenated."""
+        key = (img.shape, hashlib.blake2b(np.ascontiguousarray(img).data, digest_size=16).digest())
+        if key in self._processed_lru:
+            self._processed_lru.move_to_end(key)
+            return self._processed_lru[key]
+        out = self.image_processor(images=[img], input_data_format="channels_last", return_tensors="pt")
+        value = (out["pixel_values"], out["image_grid_thw"])
+        self._processed_lru[key] = value
+        self._processed_total += value[0].nbytes
+        while self._processed_total > PROCESSED_BYTES and len(self._processed_lru) > 1:
+            self._processed_total -= self._processed_lru.popitem(last=False)[1][0].nbytes
+        return value
 
     def image_features(self, pixel_values: torch.Tensor, image_grid_thw: torch.Tensor) -> Any:
         """The vision tower's output on a batch's images (merged tokens and deepstack features per image): what the

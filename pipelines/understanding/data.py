@@ -8,9 +8,10 @@ from __future__ import annotations
 import json
 import logging
 from collections import Counter, OrderedDict
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -21,6 +22,8 @@ from pipelines.data.layout import GAUSS_TOKEN, ROUTES_FILE, TASKS, DataError
 from pipelines.data.reader import GSQADataset, gaussians_from_table, read_arrow
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -157,10 +160,18 @@ def ego_trajectory_xy(ego2world_F44: np.ndarray, frame: int, frames: int) -> np.
 
 
 class FrameStore:
-    """Per-frame inputs, loaded on first use and kept in a small LRU (a sweep's trials read the same frames)."""
+    """Per-frame inputs, loaded on first use and kept in small LRUs (a training run's steps and a sweep's trials read
+    the same frames again): each frame's Gaussians (``capacity`` frames), camera views (``image_bytes`` of decoded
+    pixels) and what a caller derives from one frame alone (``derived``: a selector's candidates)."""
 
     def __init__(
-        self, ds: GSQADataset, scene_dirs: Mapping[str, Path], weather: str, trajectory_frames: int, capacity: int = 256
+        self,
+        ds: GSQADataset,
+        scene_dirs: Mapping[str, Path],
+        weather: str,
+        trajectory_frames: int,
+        capacity: int = 256,
+        image_bytes: int = 256 * 2**20,
     ):
         self.ds, self.scene_dirs, self.weather, self.trajectory_frames = (
             ds,
@@ -168,10 +179,25 @@ class FrameStore:
             weather,
             trajectory_frames,
         )
-        self.capacity = capacity
+        self.capacity, self.image_bytes = capacity, image_bytes
         self._gauss: OrderedDict[tuple[str, int], dict[str, torch.Tensor]] = OrderedDict()
+        self._derived: OrderedDict[tuple, object] = OrderedDict()
+        self._images: OrderedDict[tuple[str, int, str], np.ndarray] = OrderedDict()
+        self._image_total = 0
         self._poses: dict[str, np.ndarray] = {}
         self._routes: dict[str, list] | None = None
+
+    def derived(self, key: tuple, compute: Callable[[], T]) -> T:
+        """``compute()``'s value, kept under ``key`` (LRU of ``capacity`` entries): for values that depend only on
+        one frame's inputs of this store and on what ``key`` names besides (e.g. a selector's config)."""
+        if key in self._derived:
+            self._derived.move_to_end(key)
+            return self._derived[key]  # type: ignore[return-value]
+        value = compute()
+        self._derived[key] = value
+        if len(self._derived) > self.capacity:
+            self._derived.popitem(last=False)
+        return value
 
     def gaussians(self, scene: str, frame: int) -> dict[str, torch.Tensor]:
         """xyz/scale [N,3], rotation [N,4], opacity [N], code [N,C] of one frame (ego frame); the selector's path is
@@ -218,8 +244,21 @@ class FrameStore:
         the instruction and the world tokens only (rows that need images are refused before launch)."""
         if "images" not in self.ds.meta.get("tables", ["images"]):  # datasets built before tables were recorded
             return []
-        frame = self.ds.scene(sample.scene).frame(sample.frame)
-        return [frame.image(cam, self.weather) for cam in sample.views]
+        return [self._image(sample.scene, sample.frame, cam) for cam in sample.views]
+
+    def _image(self, scene: str, frame: int, cam: str) -> np.ndarray:
+        """One decoded view, read-only (callers share it), from the LRU of ``image_bytes``."""
+        key = (scene, frame, cam)
+        if key in self._images:
+            self._images.move_to_end(key)
+            return self._images[key]
+        img = self.ds.scene(scene).frame(frame).image(cam, self.weather)
+        img.setflags(write=False)
+        self._images[key] = img
+        self._image_total += img.nbytes
+        while self._image_total > self.image_bytes and len(self._images) > 1:
+            self._image_total -= self._images.popitem(last=False)[1].nbytes
+        return img
 
 
 def training_corpus(samples: Sequence[QASample]) -> list[str]:

@@ -34,7 +34,7 @@ from model_zoo.alignment import AlignmentConfig
 from model_zoo.feature_ae import FeatureAEConfig, FeatureAutoencoder
 from model_zoo.llm.qwen3_vl import LLMConfig, WorldLLM
 from model_zoo.llm.text import collate, encode_sample
-from model_zoo.selectors import SelectorConfig, SelectorInputs
+from model_zoo.selectors import Selection, SelectorConfig, SelectorInputs
 from pipelines.understanding.config import LoraStageConfig, WorldConfig
 from pipelines.understanding.data import FrameStore, QASample
 
@@ -198,17 +198,24 @@ class WorldModel(nn.Module):
         rows = []
         for b, s in enumerate(samples):
             g = store.gaussians(s.scene, s.frame)
-            path = store.selector_path(s.scene, s.frame, self.comp.selector) if self.selector.needs_trajectory else None
-            inputs = SelectorInputs(g["xyz"], g["scale"], g["rotation"], g["opacity"], trajectory=path)
             if self.selector.needs_similarity:
-                inputs.similarity = self._text_similarity(s.scene, g, e_BH[b])
-            sel = self.selector(inputs, generator=torch.Generator().manual_seed(self.comp.selector.seed))
+                sel = self._select(store, s, g, self._text_similarity(s.scene, g, e_BH[b]))
+            else:  # the frame alone decides (its Gaussians and path, a seeded generator): once per frame and store
+                key = ("selection", s.scene, s.frame, repr(self.comp.selector))
+                sel = store.derived(key, lambda s=s, g=g: self._select(store, s, g))
             # Padding slots are neutral (unit scale, zeros elsewhere), never a copy of whatever Gaussian 0 is.
             row = {k: _gather(g[k], sel.index, sel.mask, 1.0 if k == "scale" else 0.0) for k in PICKED}
             row["feature"] = self._decoded(s.scene, row.pop("code").to(device)) * sel.mask[:, None].to(device)
             row["mask"] = sel.mask
             rows.append(row)
         return {k: torch.stack([r[k] for r in rows]).to(device) for k in rows[0]}
+
+    def _select(
+        self, store: FrameStore, s: QASample, g: dict[str, torch.Tensor], similarity: torch.Tensor | None = None
+    ) -> Selection:
+        path = store.selector_path(s.scene, s.frame, self.comp.selector) if self.selector.needs_trajectory else None
+        inputs = SelectorInputs(g["xyz"], g["scale"], g["rotation"], g["opacity"], path, similarity)
+        return self.selector(inputs, generator=torch.Generator().manual_seed(self.comp.selector.seed))
 
     @torch.no_grad()
     def _text_similarity(self, scene: str, g: dict[str, torch.Tensor], e_H: torch.Tensor) -> torch.Tensor:

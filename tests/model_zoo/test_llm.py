@@ -159,6 +159,25 @@ def test_image_inputs_count_the_merged_tokens_the_tower_returns(llm):
     torch.testing.assert_close(llm.text_embeddings(ids)[0, 1], llm.model.get_input_embeddings().weight[2])
 
 
+def test_image_inputs_equal_the_processors_own_batch_and_process_each_image_once(llm, monkeypatch):
+    fresh = _build()
+    images = _images(3)
+    flat = [img for views in images for img in views]
+    ref = fresh.image_processor(images=flat, input_data_format="channels_last", return_tensors="pt")
+    calls = []
+    processor = fresh.image_processor
+    monkeypatch.setattr(fresh, "image_processor", lambda **kw: calls.append(len(kw["images"])) or processor(**kw))
+    pv, grid, counts = fresh.image_inputs(images)
+    assert torch.equal(pv, ref["pixel_values"]) and torch.equal(grid, ref["image_grid_thw"])
+    assert calls == [1] * 6 and counts == [[6, 6], [4], [6, 6], [4]]
+    again = fresh.image_inputs([images[2], images[0]])  # the same pixels in another batch: nothing processed
+    assert calls == [1] * 6 and torch.equal(again[0], torch.cat([pv[64:112], pv[:48]]))
+    other = images[0][0].copy()
+    other[0, 0, 0] ^= 1  # one value of one pixel changed: a new image
+    fresh.image_inputs([[other]])
+    assert calls == [1] * 7
+
+
 # ---------------------------------------------------------------- Gaussian token injection
 
 

@@ -10,6 +10,7 @@ import pytest
 from pipelines.data.layout import DataError
 from pipelines.data.reader import GSQADataset
 from pipelines.understanding.data import (
+    FrameStore,
     QASample,
     TaskSampler,
     balanced_subset,
@@ -79,3 +80,29 @@ def test_load_samples_counts_what_it_skips(synth_small, tmp_path):
     assert skipped["frame_excluded_by_qc"] > 0
     free, none_skipped = load_samples(ds, "train", {}, need_gaussians=False)
     assert len(free) == all_train and not none_skipped
+
+
+def test_frame_store_decodes_a_view_once_read_only_within_its_byte_budget(synth_small, monkeypatch):
+    from pipelines.data import reader
+
+    ds = GSQADataset(synth_small)
+    samples, _ = load_samples(ds, "train", {}, need_gaussians=False)
+    a = next(s for s in samples if len(s.views) >= 2)
+    b = next(s for s in samples if (s.scene, s.frame) != (a.scene, a.frame) and s.views)
+    reads = []
+    image = reader.Frame.image
+    monkeypatch.setattr(reader.Frame, "image", lambda f, cam, w="clear": reads.append((f.idx, cam)) or image(f, cam, w))
+    one = ds.scene(a.scene).frame(a.frame).image(a.views[0], "clear")
+    store = FrameStore(ds, {}, "clear", 3, image_bytes=len(a.views) * one.nbytes)
+    first = store.images(a)
+    direct = [ds.scene(a.scene).frame(a.frame).image(c, "clear") for c in a.views]
+    assert len(first) == len(a.views) and all(np.array_equal(x, y) for x, y in zip(first, direct, strict=True))
+    assert all(not x.flags.writeable for x in first)
+    reads.clear()
+    assert all(x is y for x, y in zip(store.images(a), first, strict=True)) and reads == []  # kept
+    store.images(b)  # over the budget: a's views go first
+    store.images(a)
+    assert reads[-len(a.views) :] == [(a.frame, c) for c in a.views]
+    computed = []
+    assert store.derived(("k", 1), lambda: computed.append(1) or "v") == "v"
+    assert store.derived(("k", 1), lambda: computed.append(2) or "w") == "v" and computed == [1]

@@ -264,3 +264,26 @@ def test_one_pass_of_the_vision_tower_serves_the_lm_loss_and_the_kl_targets(synt
     assert torch.equal(loss1, loss2)
     assert sorted(grads1) == sorted(grads2) and any("lora_" in n for n in grads1)
     assert [n for n in grads1 if not torch.equal(grads1[n], grads2[n])] == []
+
+
+def test_a_frame_only_selector_selects_once_per_frame_and_store(synth_small, distilled16, tiny_llm_dir):
+    comp = components({}, "driving_aware", "query_xattn", "kl")
+    model = build_world_model(comp, WorldLLM.from_pretrained(tiny_llm_dir), distilled16, seed=0)
+    ds = GSQADataset(synth_small)
+    samples, _ = load_samples(ds, "train", distilled16, need_gaussians=True)
+    calls = []
+    selector = model.selector
+    model.selector = type("Counting", (), {
+        "needs_trajectory": True, "needs_similarity": False,
+        "__call__": lambda self, g, generator=None: calls.append(1) or selector(g, generator=generator),
+    })()  # fmt: skip
+    e = torch.zeros(4, model.llm.hidden_size)
+    store = FrameStore(ds, distilled16, "clear", 3)
+    with torch.no_grad():
+        first = model.candidates(samples[:4], store, e)
+        again = model.candidates(samples[:4], store, e)
+        fresh = model.candidates(samples[:4], FrameStore(ds, distilled16, "clear", 3), e)
+    frames = len({(s.scene, s.frame) for s in samples[:4]})
+    assert len(calls) == 2 * frames  # once per frame in each store, not once per sample and step
+    assert first.keys() == fresh.keys() and all(torch.equal(first[k], again[k]) for k in first)
+    assert all(torch.equal(first[k], fresh[k]) for k in first)
