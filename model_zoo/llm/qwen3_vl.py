@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-from collections import OrderedDict
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -46,6 +45,7 @@ from model_zoo.llm.text import (
     encode_sample,
     train_tiny_tokenizer,
 )
+from model_zoo.lru import LRU
 from model_zoo.registry import register
 
 EXPECTED_FILES = (
@@ -101,8 +101,9 @@ class WorldLLM:
         self.tokenizer = tokenizer
         self.image_processor = image_processor
         self.cfg = cfg
-        self._processed_lru: OrderedDict[tuple, tuple[torch.Tensor, torch.Tensor]] = OrderedDict()
-        self._processed_total = 0
+        self._processed_lru: LRU[tuple[torch.Tensor, torch.Tensor]] = LRU(
+            nbytes=PROCESSED_BYTES, size=lambda v: v[0].nbytes
+        )
         self.gauss_token_id = add_gauss_token(model, tokenizer)
         ids = {t: tokenizer.convert_tokens_to_ids(t) for t in (PAD, IM_END, IMAGE_PAD, VISION_START, VISION_END)}
         if ids[IMAGE_PAD] != model.config.image_token_id:
@@ -214,16 +215,12 @@ class WorldLLM:
         (an LRU of ``PROCESSED_BYTES``): training steps see the same camera views again and again, and the processor
         treats each image of a batch alone, so a batch's inputs are its images' rows concatenated."""
         key = (img.shape, hashlib.blake2b(np.ascontiguousarray(img).data, digest_size=16).digest())
-        if key in self._processed_lru:
-            self._processed_lru.move_to_end(key)
-            return self._processed_lru[key]
-        out = self.image_processor(images=[img], input_data_format="channels_last", return_tensors="pt")
-        value = (out["pixel_values"], out["image_grid_thw"])
-        self._processed_lru[key] = value
-        self._processed_total += value[0].nbytes
-        while self._processed_total > PROCESSED_BYTES and len(self._processed_lru) > 1:
-            self._processed_total -= self._processed_lru.popitem(last=False)[1][0].nbytes
-        return value
+
+        def process() -> tuple[torch.Tensor, torch.Tensor]:
+            out = self.image_processor(images=[img], input_data_format="channels_last", return_tensors="pt")
+            return out["pixel_values"], out["image_grid_thw"]
+
+        return self._processed_lru.get(key, process)
 
     def image_features(self, pixel_values: torch.Tensor, image_grid_thw: torch.Tensor) -> Any:
         """The vision tower's output on a batch's images (merged tokens and deepstack features per image): what the

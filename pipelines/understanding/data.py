@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections import Counter, OrderedDict
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from model_zoo.config import PathSource, SelectorConfig
+from model_zoo.lru import LRU
 from model_zoo.selectors import route_path
 from pipelines.data.layout import GAUSS_TOKEN, ROUTES_FILE, TASKS, DataError
 from pipelines.data.reader import GSQADataset, gaussians_from_table, read_arrow
@@ -180,41 +181,29 @@ class FrameStore:
             trajectory_frames,
         )
         self.capacity, self.image_bytes = capacity, image_bytes
-        self._gauss: OrderedDict[tuple[str, int], dict[str, torch.Tensor]] = OrderedDict()
-        self._derived: OrderedDict[tuple, object] = OrderedDict()
-        self._images: OrderedDict[tuple[str, int, str], np.ndarray] = OrderedDict()
-        self._image_total = 0
+        self._gauss: LRU[dict[str, torch.Tensor]] = LRU(items=capacity)
+        self._derived: LRU[object] = LRU(items=capacity)
+        self._images: LRU[np.ndarray] = LRU(nbytes=image_bytes, size=lambda img: img.nbytes)
         self._poses: dict[str, np.ndarray] = {}
         self._routes: dict[str, list] | None = None
 
     def derived(self, key: tuple, compute: Callable[[], T]) -> T:
         """``compute()``'s value, kept under ``key`` (LRU of ``capacity`` entries): for values that depend only on
         one frame's inputs of this store and on what ``key`` names besides (e.g. a selector's config)."""
-        if key in self._derived:
-            self._derived.move_to_end(key)
-            return self._derived[key]  # type: ignore[return-value]
-        value = compute()
-        self._derived[key] = value
-        if len(self._derived) > self.capacity:
-            self._derived.popitem(last=False)
-        return value
+        return self._derived.get(key, compute)  # type: ignore[return-value]
 
     def gaussians(self, scene: str, frame: int) -> dict[str, torch.Tensor]:
         """xyz/scale [N,3], rotation [N,4], opacity [N], code [N,C] of one frame (ego frame); the selector's path is
         ``selector_path``."""
-        key = (scene, frame)
-        if key in self._gauss:
-            self._gauss.move_to_end(key)
-            return self._gauss[key]
+        return self._gauss.get((scene, frame), lambda: self._read_gaussians(scene, frame))
+
+    def _read_gaussians(self, scene: str, frame: int) -> dict[str, torch.Tensor]:
         path = gaussians_path(self.scene_dirs[scene], frame)
         arrays = gaussians_from_table(read_arrow(path, f"{scene}/frame_{frame:03d} distilled gaussians"))
         out = {
             k: torch.from_numpy(np.array(arrays[k], dtype=np.float32)) for k in ("xyz", "scale", "rotation", "opacity")
         }
         out["code"] = torch.from_numpy(np.array(arrays["feature"], dtype=np.float32))
-        self._gauss[key] = out
-        if len(self._gauss) > self.capacity:
-            self._gauss.popitem(last=False)
         return out
 
     def selector_path(self, scene: str, frame: int, cfg: SelectorConfig) -> torch.Tensor:
@@ -248,17 +237,13 @@ class FrameStore:
 
     def _image(self, scene: str, frame: int, cam: str) -> np.ndarray:
         """One decoded view, read-only (callers share it), from the LRU of ``image_bytes``."""
-        key = (scene, frame, cam)
-        if key in self._images:
-            self._images.move_to_end(key)
-            return self._images[key]
-        img = self.ds.scene(scene).frame(frame).image(cam, self.weather)
-        img.setflags(write=False)
-        self._images[key] = img
-        self._image_total += img.nbytes
-        while self._image_total > self.image_bytes and len(self._images) > 1:
-            self._image_total -= self._images.popitem(last=False)[1].nbytes
-        return img
+
+        def read() -> np.ndarray:
+            img = self.ds.scene(scene).frame(frame).image(cam, self.weather)
+            img.setflags(write=False)
+            return img
+
+        return self._images.get((scene, frame, cam), read)
 
 
 def training_corpus(samples: Sequence[QASample]) -> list[str]:
