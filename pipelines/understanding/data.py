@@ -180,7 +180,6 @@ class FrameStore:
             weather,
             trajectory_frames,
         )
-        self.capacity, self.image_bytes = capacity, image_bytes
         self._gauss: LRU[dict[str, torch.Tensor]] = LRU(items=capacity)
         self._derived: LRU[object] = LRU(items=capacity)
         self._images: LRU[np.ndarray] = LRU(nbytes=image_bytes, size=lambda img: img.nbytes)
