@@ -78,7 +78,7 @@ from gdwm.plan import (
 )
 from gdwm.preflight import check_ray_temp
 from gdwm.progress import Execution, LaunchProgress, ProgressActor, Reporter
-from gdwm.simcluster import SimCluster, SimConfig
+from gdwm.simcluster import SimCluster, SimConfig, stop_monitor
 from gdwm.term import NORMAL, QUIET, console, err_console
 from gdwm.tracking import (
     AliveExcept,
@@ -342,6 +342,8 @@ def _stop_ray(started: SimCluster | bool) -> None:
     if isinstance(started, SimCluster):
         console.print(started.describe_placement(), markup=False)
     if started:
+        if (node := ray._private.worker._global_node) is not None:  # the local Ray this process started
+            stop_monitor(node)
         ray.shutdown()
     if isinstance(started, SimCluster):
         started.stop()
@@ -775,7 +777,11 @@ def execute(
     def poll() -> None:
         if _TERMINATED:
             raise SystemExit(128 + _TERMINATED[0])
-        ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=0.5)
+        # Back as soon as one result is in (waiting for all, the last stage's end waited out the timeout), then
+        # every result in by now: their events are handled upstream first.
+        ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
+        if ready and len(pending) > 1:
+            ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=0)
         monitor.poll()  # the workers' events before the outcomes they precede
         blocked_before = {k for k, v in outcome.items() if v is None}
         for ref in sorted(ready, key=order.__getitem__):  # upstream first: a failure blocks what follows it

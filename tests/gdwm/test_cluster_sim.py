@@ -97,6 +97,39 @@ def test_two_node_sim_places_gpu_actors_on_both_nodes_and_refuses_a_node_without
     assert out["env_after"] is None  # the auth environment is restored after stop
 
 
+_STOP_PROBE = textwrap.dedent(
+    """
+    import json, logging, ray
+    from ray._private import ray_constants, worker
+    from gdwm.simcluster import stop_monitor
+
+    ray.init(address="local", num_cpus=1, include_dashboard=False, logging_level=logging.WARNING)
+    node = worker._global_node
+    procs = {t: [i.process for i in infos] for t, infos in node.all_processes.items()}
+    (monitor,) = procs[ray_constants.PROCESS_TYPE_MONITOR]
+    stop_monitor(node)
+    out = {"monitor_rc": monitor.returncode, "task": ray.get(ray.remote(lambda: 7).remote())}
+    out["alive_before"] = sorted(t for t, ps in procs.items() for p in ps if p.poll() is None)
+    ray.shutdown()
+    out["alive_after"] = sorted(t for t, ps in procs.items() for p in ps if p.poll() is None)
+    print("PROBE " + json.dumps(out))
+    """
+)
+
+
+def test_stop_monitor_kills_only_the_autoscaler_monitor_and_the_node_still_serves_then_stops(tmp_path):
+    r = subprocess.run([sys.executable, "-c", _STOP_PROBE], env=Toy(tmp_path).env(), capture_output=True, text=True,
+                       timeout=120)  # fmt: skip
+    line = next((ln for ln in r.stdout.splitlines() if ln.startswith("PROBE ")), None)
+    assert r.returncode == 0 and line, f"exit {r.returncode}\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}"
+    out = json.loads(line.removeprefix("PROBE "))
+    assert out["monitor_rc"] == -signal.SIGKILL  # killed, so its SIGTERM handler never waits on a stopped GCS
+    assert out["task"] == 7
+    assert out["alive_before"] == ["dashboard", "gcs_server", "log_monitor", "raylet"]
+    assert out["alive_after"] == []
+    assert "autoscaler failed" not in r.stderr and "Terminated with signal" not in r.stderr
+
+
 def _placement(stdout: str) -> dict[str, dict[str, int]]:
     line = next(ln for ln in stdout.splitlines() if ln.startswith("sim placement: "))
     assert re.fullmatch(r"sim placement: [\w-]+: \w+ x\d+(, \w+ x\d+)*(; [\w-]+: \w+ x\d+(, \w+ x\d+)*)*", line), line
