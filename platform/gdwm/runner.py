@@ -342,7 +342,7 @@ def _stop_ray(started: SimCluster | bool) -> None:
     if isinstance(started, SimCluster):
         console.print(started.describe_placement(), markup=False)
     if started:
-        if (node := ray._private.worker._global_node) is not None:  # the local Ray this process started
+        if (node := getattr(ray._private.worker, "_global_node", None)) is not None:  # the Ray this process runs
             stop_monitor(node)
         ray.shutdown()
     if isinstance(started, SimCluster):
