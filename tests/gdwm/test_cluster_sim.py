@@ -78,12 +78,18 @@ _PROBE = textwrap.dedent(
 )
 
 
-def test_two_node_sim_places_gpu_actors_on_both_nodes_and_refuses_a_node_without_the_token(tmp_path):
-    env = Toy(tmp_path).env()
-    r = subprocess.run([sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True, timeout=240)
+def _probe(code: str, tmp_path: Path, timeout: float) -> tuple[dict, str]:
+    """Run a probe script in a new Python (Ray started in the test process would outlive the test): the JSON of
+    its ``PROBE `` line, and its stderr."""
+    r = subprocess.run([sys.executable, "-c", code], env=Toy(tmp_path).env(), capture_output=True, text=True,
+                       timeout=timeout)  # fmt: skip
     line = next((ln for ln in r.stdout.splitlines() if ln.startswith("PROBE ")), None)
     assert r.returncode == 0 and line, f"exit {r.returncode}\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}"
-    out = json.loads(line.removeprefix("PROBE "))
+    return json.loads(line.removeprefix("PROBE ")), r.stderr
+
+
+def test_two_node_sim_places_gpu_actors_on_both_nodes_and_refuses_a_node_without_the_token(tmp_path):
+    out, _ = _probe(_PROBE, tmp_path, timeout=240)
     assert out["env"] == "token" and out["token_mode"] == "0o600"
     assert sorted(n for n, _ in out["placed"]) == sorted(out["nodes"])  # one actor per worker node
     assert [gpu for _, gpu in out["placed"]] == ["0", "0"]  # each node's own (fake) GPU 0
@@ -118,16 +124,12 @@ _STOP_PROBE = textwrap.dedent(
 
 
 def test_stop_monitor_kills_only_the_autoscaler_monitor_and_the_node_still_serves_then_stops(tmp_path):
-    r = subprocess.run([sys.executable, "-c", _STOP_PROBE], env=Toy(tmp_path).env(), capture_output=True, text=True,
-                       timeout=120)  # fmt: skip
-    line = next((ln for ln in r.stdout.splitlines() if ln.startswith("PROBE ")), None)
-    assert r.returncode == 0 and line, f"exit {r.returncode}\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}"
-    out = json.loads(line.removeprefix("PROBE "))
+    out, stderr = _probe(_STOP_PROBE, tmp_path, timeout=120)
     assert out["monitor_rc"] == -signal.SIGKILL  # killed, so its SIGTERM handler never waits on a stopped GCS
     assert out["task"] == 7
     assert out["alive_before"] == ["dashboard", "gcs_server", "log_monitor", "raylet"]
     assert out["alive_after"] == []
-    assert "autoscaler failed" not in r.stderr and "Terminated with signal" not in r.stderr
+    assert "autoscaler failed" not in stderr and "Terminated with signal" not in stderr
 
 
 def _placement(stdout: str) -> dict[str, dict[str, int]]:
