@@ -205,7 +205,8 @@ class RunSettings:
     snapshot_s: Annotated[float, Gt(0)] = 10.0
     """The launch's progress snapshot on its MLflow run (``gdwm.events``) is written at most this often."""
     worker_logs: bool = False
-    """Stream Ray workers' stdout/stderr to the driver (errors reach MLflow as error.txt either way)."""
+    """Stream Ray workers' stdout/stderr to the driver, to their last line: before Ray stops, the driver waits until
+    Ray has forwarded what the workers wrote (``gdwm.workerlogs``). Errors reach MLflow as error.txt either way."""
     deterministic: bool | None = None
     """Bit-identical trials: every stage starts from its seed with a fixed torch thread count, and CUDA uses
     deterministic kernels (slower on GPUs). null = on where a stage runs without CUDA, off where it has CUDA."""

@@ -43,6 +43,7 @@ from omegaconf import DictConfig, OmegaConf
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 from rich.table import Table
 
+from gdwm import workerlogs
 from gdwm.cache import CACHE_KEYS, Cache
 from gdwm.config import SweepConfig
 from gdwm.dag import Pipeline
@@ -334,6 +335,14 @@ def driver_session(cfg: DictConfig, warm: list[str] | None = None) -> Iterator[T
     finally:
         with phase("tracking stop"):
             close()
+        if cfg.run.worker_logs and ray.is_initialized():
+            with phase("worker logs"):
+                if not workerlogs.drain():
+                    err_console.print(
+                        "gdwm: the workers' last output may be missing above (Ray did not forward it within "
+                        f"{workerlogs.TIMEOUT_S:g} s)",
+                        markup=False,
+                    )
         with phase("ray stop"):
             _stop_ray(started)
 

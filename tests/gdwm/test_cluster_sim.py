@@ -20,6 +20,7 @@ import pytest
 import torch
 
 from gdwm.cache import Cache
+from gdwm.workerlogs import MARK
 from tests.gdwm.servers import free_port
 from tests.gdwm.test_run import REPO, Toy, _ok
 
@@ -78,14 +79,14 @@ _PROBE = textwrap.dedent(
 )
 
 
-def _probe(code: str, tmp_path: Path, timeout: float) -> tuple[dict, str]:
+def _probe(code: str, tmp_path: Path, timeout: float) -> tuple[dict, subprocess.CompletedProcess]:
     """Run a probe script in a new Python (Ray started in the test process would outlive the test): the JSON of
-    its ``PROBE `` line, and its stderr."""
+    its ``PROBE `` line, and the process (its output)."""
     r = subprocess.run([sys.executable, "-c", code], env=Toy(tmp_path).env(), capture_output=True, text=True,
                        timeout=timeout)  # fmt: skip
     line = next((ln for ln in r.stdout.splitlines() if ln.startswith("PROBE ")), None)
     assert r.returncode == 0 and line, f"exit {r.returncode}\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}"
-    return json.loads(line.removeprefix("PROBE ")), r.stderr
+    return json.loads(line.removeprefix("PROBE ")), r
 
 
 def test_two_node_sim_places_gpu_actors_on_both_nodes_and_refuses_a_node_without_the_token(tmp_path):
@@ -124,12 +125,47 @@ _STOP_PROBE = textwrap.dedent(
 
 
 def test_stop_monitor_kills_only_the_autoscaler_monitor_and_the_node_still_serves_then_stops(tmp_path):
-    out, stderr = _probe(_STOP_PROBE, tmp_path, timeout=120)
+    out, r = _probe(_STOP_PROBE, tmp_path, timeout=120)
     assert out["monitor_rc"] == -signal.SIGKILL  # killed, so its SIGTERM handler never waits on a stopped GCS
     assert out["task"] == 7
     assert out["alive_before"] == ["dashboard", "gcs_server", "log_monitor", "raylet"]
     assert out["alive_after"] == []
-    assert "autoscaler failed" not in stderr and "Terminated with signal" not in stderr
+    assert "autoscaler failed" not in r.stderr and "Terminated with signal" not in r.stderr
+
+
+_DRAIN_PROBE = textwrap.dedent(
+    """
+    import json, logging, sys, ray
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+    from gdwm.simcluster import SimCluster, SimConfig
+    from gdwm.workerlogs import drain
+
+    sim = SimCluster(SimConfig(nodes=2, node_cpus=1, node_gpus=0)).start()
+    try:
+        ray.init(address=sim.address, include_dashboard=False, log_to_driver=True, logging_level=logging.WARNING)
+
+        @ray.remote(num_cpus=0)
+        def say(i):
+            print(f"said-{i}", file=sys.stderr if i % 2 else sys.stdout, flush=True)
+
+        on = [NodeAffinitySchedulingStrategy(n.node_id, soft=False) for n in sim.nodes]
+        ray.get([say.options(scheduling_strategy=on[i % 2]).remote(i) for i in range(4)])
+        out = {"drained": drain(timeout_s=60)}
+        ray.shutdown()
+    finally:
+        sim.stop()
+    print("PROBE " + json.dumps(out))
+    """
+)
+
+
+def test_drain_prints_every_line_workers_wrote_on_every_node_and_no_marker(tmp_path):
+    """``run.worker_logs``: Ray shut down right after a stage no longer loses the stage's last lines."""
+    out, r = _probe(_DRAIN_PROBE, tmp_path, timeout=240)
+    assert out == {"drained": True}
+    assert sorted(re.findall(r"said-\d", r.stdout)) == ["said-0", "said-2"], r.stdout
+    assert sorted(re.findall(r"said-\d", r.stderr)) == ["said-1", "said-3"], r.stderr
+    assert MARK.strip() not in r.stdout + r.stderr
 
 
 def _placement(stdout: str) -> dict[str, dict[str, int]]:
