@@ -10,8 +10,10 @@ that each print a line, then ``ray.shutdown``: none of the three printed in two 
 node's marker, it does it again. The second round starts after the first round's markers arrived, so each node's
 pass that published the first marker (and every file after it in that pass) has published before the second
 marker can, and everything a worker wrote before ``drain`` began is printed. The markers themselves are not
-printed: ``drain`` puts a filter in front of Ray's printer. A worker that wrote more than a pass reads of one file
-(Ray's ``LOG_MONITOR_NUM_LINES_TO_READ``) just before the end can still be cut, as in Ray.
+printed: ``drain`` puts a filter in front of Ray's printer. What can still be cut, as in Ray: the output of a
+worker whose log file the monitor has not found yet (it looks for new files every 0.5 s; a stage's worker has
+been up longer, importing its libraries), and more lines than a pass reads of one file (Ray's
+``LOG_MONITOR_NUM_LINES_TO_READ``) written just before the end.
 """
 
 from __future__ import annotations
