@@ -63,17 +63,17 @@ def _filter() -> _Filter | None:
     (``log_to_driver=False``) or its dispatcher is not as this module knows it."""
     from ray._private.ray_logging import global_worker_stdstream_dispatcher as dispatcher
 
-    handlers = getattr(dispatcher, "handlers", None)
     lock = getattr(dispatcher, "_lock", None)
-    if not isinstance(handlers, list) or lock is None:
+    if lock is None:
         return None
-    with lock:
-        for i, (name, handler) in enumerate(dispatcher.handlers):
+    with lock:  # Ray's emit iterates the list under this lock, and its remove_handler replaces it
+        handlers = getattr(dispatcher, "handlers", None)
+        for i, (name, handler) in enumerate(handlers if isinstance(handlers, list) else []):
             if name == _PRINTER:
                 if not isinstance(handler, _Filter):
                     # The same name: Ray's disconnect removes it by that name, and the next connection starts clean.
                     handler = _Filter(handler)
-                    dispatcher.handlers = [*dispatcher.handlers[:i], (name, handler), *dispatcher.handlers[i + 1 :]]
+                    handlers[i] = (name, handler)
                 return handler
     return None
 
