@@ -13,6 +13,7 @@ risk metrics) and for text metrics on the fallback tokenizer.
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -158,7 +159,15 @@ TEXT_GROUPS = {
 
 
 def _selected(rows: list[dict], patterns: Sequence[str]) -> list[dict]:
-    return [r for r in rows if any(fnmatchcase(r[c] or "", p) for p in patterns for c in ("task", "category"))]
+    pats = tuple(patterns)
+    return [r for r in rows if _matches(r["task"] or "", r["category"] or "", pats)]
+
+
+@functools.lru_cache(maxsize=1 << 12)
+def _matches(task: str, category: str, patterns: tuple[str, ...]) -> bool:
+    """A row of this task and category is one of ``patterns``' (memoised: a bootstrap selects the same few task
+    families from every resample's rows)."""
+    return any(fnmatchcase(v, p) for p in patterns for v in (task, category))
 
 
 def score_predictions(

@@ -118,6 +118,27 @@ def test_table_input_equals_dicts():
     assert score_predictions(table).metrics == score_predictions(rows()).metrics
 
 
+def test_scores_do_not_depend_on_what_was_scored_before():
+    """The parsers and the row selection are memoised (a bootstrap re-scores the same rows for every resample): a
+    table's metrics are the same whatever was scored before it and under which mapping, and a row without a task
+    is still selected by its category."""
+    first = score_predictions(rows()).metrics
+    swapped = SuiteMapping(nuinteract_vg2d=["vg3d"], nuinteract_vg3d=["vg2d"])
+    other = score_predictions(rows(), swapped)
+    # each family's answers are the other's bad answers: no grounding metric, every reference counted as unparsed
+    assert other.counts["bad_answer/nuinteract/vg2d"] == other.counts["bad_answer/nuinteract/vg3d"] == 2
+    assert "nuinteract/vg2d_map" not in other.metrics and first["nuinteract/vg2d_map"] == pytest.approx(
+        50.495, abs=1e-3
+    )
+    assert score_predictions(rows()).metrics == first
+    untasked = [(None, c[1], c[2], c[3]) for c in CASES if c[1] == "2D_perception_infos"]
+    assert (
+        score_predictions(rows(untasked)).metrics
+        == {"nuinstruct/mae": first["nuinstruct/mae"]}
+        == {"nuinstruct/mae": 1.0}
+    )
+
+
 def test_mapping_selects_release_categories():
     release = [("rdp", "NuInstruct/caption", DESC, DESC), ("vg2d", "NuInstruct/detection", BOX, BOX)]
     default = score_predictions(rows(release))
