@@ -8,6 +8,7 @@ Legend: N canonical Gaussians, P = H*W pixels of a view, C = d_f feature dims, Z
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -35,6 +36,11 @@ class ViewFeatures:
     valid_HW: torch.Tensor
     """Omega_v: E_F defined and the Gaussians' alpha at least ``min_alpha``."""
 
+    @functools.cached_property
+    def weights_NP(self) -> torch.Tensor:
+        """The weights transposed, as CSR: made once for a view's every step (``render_features``)."""
+        return self.weights_PN.t().to_sparse_csr()
+
 
 @dataclass
 class Distilled:
@@ -48,8 +54,28 @@ class Distilled:
     """The baseline: the mean pixel feature of the training views' samples."""
 
 
-def render_features(weights_PN: torch.Tensor, feats_NC: torch.Tensor, hw: tuple[int, int]) -> torch.Tensor:
-    """Eq. F_v(u) = sum_i w_iu D_F(z_i), with the view's precomputed weights: ``[H, W, C]``."""
+class _WeightedSum(torch.autograd.Function):
+    """``W @ F`` whose backward is ``W^T @ grad`` with W^T given: torch's own backward transposes the sparse W on
+    every call, most of a distillation step's time on CPU. The same gradient, bit for bit (its transpose is this
+    CSR one)."""
+
+    @staticmethod
+    def forward(ctx, weights_PN: torch.Tensor, weights_NP: torch.Tensor, feats_NC: torch.Tensor) -> torch.Tensor:
+        ctx.weights_NP = weights_NP
+        return weights_PN @ feats_NC
+
+    @staticmethod
+    def backward(ctx, grad_PC: torch.Tensor):
+        return None, None, ctx.weights_NP @ grad_PC
+
+
+def render_features(
+    weights_PN: torch.Tensor, feats_NC: torch.Tensor, hw: tuple[int, int], weights_NP: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Eq. F_v(u) = sum_i w_iu D_F(z_i), with the view's precomputed weights: ``[H, W, C]``. ``weights_NP``, their
+    transpose (``ViewFeatures.weights_NP``), makes the gradient of a view rendered many times cheap."""
+    if weights_NP is not None and feats_NC.requires_grad:
+        return _WeightedSum.apply(weights_PN, weights_NP, feats_NC).reshape(*hw, -1)
     return (weights_PN @ feats_NC).reshape(*hw, -1)
 
 
@@ -88,7 +114,7 @@ def initial_features(n: int, train: list[ViewFeatures], mean_feature_C: torch.Te
     """``[N, C]``: each Gaussian's features of the pixels it covers, weighted by w_iu; the mean where it covers none."""
     acc, mass = torch.zeros(n, mean_feature_C.shape[0]), torch.zeros(n)
     for t in train:
-        wt = t.weights_PN.t()
+        wt = t.weights_NP
         acc += wt @ (t.target_HWC * t.valid_HW[..., None]).reshape(-1, t.target_HWC.shape[-1])
         mass += (wt @ t.valid_HW.reshape(-1, 1).float()).squeeze(1)
     return torch.where(mass[:, None] > 1e-6, acc / mass.clamp(min=1e-6)[:, None], mean_feature_C)
@@ -119,7 +145,7 @@ def distill_codes(
         decoded = ae.decode(z)
         batch = [train[i] for i in torch.randperm(len(train), generator=gen)[: cfg.views_per_step].tolist()]
         loss = l_distill(
-            torch.stack([render_features(t.weights_PN, decoded, t.target_HWC.shape[:2]) for t in batch]),
+            torch.stack([render_features(t.weights_PN, decoded, t.target_HWC.shape[:2], t.weights_NP) for t in batch]),
             torch.stack([t.target_HWC for t in batch]),
             torch.stack([t.valid_HW for t in batch]),
         )

@@ -99,5 +99,8 @@ def test_composite_weights_reproduce_rendered_features():
     out = rasterize(means, scales, quats, opac, colors, cam, features=feats)
     W = composite_weights(means, scales, quats, opac, cam)
     assert W.shape == (48 * 32, n) and W._nnz() > 0
+    # built coalesced without a coalesce: what coalescing the same entries gives (sorted, no pair twice)
+    again = torch.sparse_coo_tensor(W.indices().flip(1), W.values().flip(0), W.shape).coalesce()
+    assert W.is_coalesced() and torch.equal(again.indices(), W.indices()) and torch.equal(again.values(), W.values())
     torch.testing.assert_close(torch.sparse.mm(W, feats).reshape(32, 48, 5), out.features, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(torch.sparse.sum(W, dim=1).to_dense().reshape(32, 48), out.alpha, atol=1e-5, rtol=1e-5)

@@ -27,3 +27,20 @@ def test_initial_features_weight_valid_pixels_and_fall_back_to_the_mean():
     mean_C = torch.tensor([9.0])
     f_NC = initial_features(3, [_view(weights_PN, target_HWC, valid_HW)], mean_C)
     assert f_NC.tolist() == [[2.0], [9.0], [9.0]]
+
+
+def test_a_view_rendered_with_its_transpose_has_torchs_own_gradient_bit_for_bit():
+    g = torch.Generator().manual_seed(0)
+    dense_PN = torch.rand(60, 40, generator=g) * (torch.rand(60, 40, generator=g) < 0.2)
+    view = _view(dense_PN, torch.zeros(6, 10, 1), torch.ones(6, 10, dtype=torch.bool))
+    feats = torch.randn(40, 3, generator=g)
+    upstream = torch.randn(6, 10, 3, generator=g)
+    grads = []
+    for transpose in (None, view.weights_NP):
+        f = feats.clone().requires_grad_(True)
+        out = render_features(view.weights_PN, f, (6, 10), transpose)
+        (out * upstream).sum().backward()
+        grads.append((out.detach(), f.grad))
+    assert view.weights_NP.layout == torch.sparse_csr and view.weights_NP.shape == (40, 60)
+    assert torch.equal(grads[0][0], grads[1][0]) and torch.equal(grads[0][1], grads[1][1])
+    torch.testing.assert_close(grads[1][1], dense_PN.t() @ upstream.reshape(60, 3))
