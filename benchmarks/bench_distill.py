@@ -18,6 +18,7 @@ import model_zoo.render.torch_tiles as tiles
 from benchmarks.bench_render import scene
 from benchmarks.common import Result, median_time
 from model_zoo.render import composite_weights
+from pipelines.distill.field import on_rows
 from pipelines.distill.optimize import render_features
 
 FULL = {"n": 20_000, "width": 160, "height": 96, "channels": 64}
@@ -40,12 +41,14 @@ def coalescing():
         tiles.sorted_coo = before
 
 
-def on_rows(w: torch.Tensor, rows: torch.Tensor, n: int, flagged: bool) -> torch.Tensor:
-    """``view_weights``' step: the visible Gaussians' columns renumbered to canonical rows, as CSR."""
+def on_rows_coalescing(w: torch.Tensor, rows: torch.Tensor, n: int) -> torch.Tensor:
+    """``on_rows`` as ``view_weights`` did it before: coalesced again."""
     idx = w.indices()
-    out = torch.sparse_coo_tensor(torch.stack([idx[0], rows[idx[1]]]), w.values(), (w.shape[0], n),
-                                  is_coalesced=flagged or None)  # fmt: skip
-    return (out if flagged else out.coalesce()).to_sparse_csr()
+    return (
+        torch.sparse_coo_tensor(torch.stack([idx[0], rows[idx[1]]]), w.values(), (w.shape[0], n))
+        .coalesce()
+        .to_sparse_csr()
+    )
 
 
 def run(quick: bool = False) -> list[Result]:
@@ -64,11 +67,11 @@ def run(quick: bool = False) -> list[Result]:
 
     # the scene has twice the Gaussians the view sees; its visible ones are every other row
     rows, n_scene = torch.arange(0, 2 * size["n"], 2), 2 * size["n"]
-    a, b = on_rows(w, rows, n_scene, True), on_rows(w, rows, n_scene, False)
+    a, b = on_rows(w, rows, n_scene), on_rows_coalescing(w, rows, n_scene)
     parts = [(m.crow_indices(), m.col_indices(), m.values()) for m in (a, b)]
     assert all(torch.equal(x, y) for x, y in zip(*parts, strict=True))
-    r_ours, _ = median_time(lambda: on_rows(w, rows, n_scene, True), reps)
-    r_theirs, _ = median_time(lambda: on_rows(w, rows, n_scene, False), reps)
+    r_ours, _ = median_time(lambda: on_rows(w, rows, n_scene), reps)
+    r_theirs, _ = median_time(lambda: on_rows_coalescing(w, rows, n_scene), reps)
 
     # views: the same geometry seen from cameras shifted sideways, as a drive's frames see a scene
     views = [composite_weights(params["means"] + torch.tensor([0.05 * i, 0.0, 0.0]), *g[1:], cam).to_sparse_csr()
