@@ -41,14 +41,12 @@ def coalescing():
         tiles.sorted_coo = before
 
 
-def on_rows_coalescing(w: torch.Tensor, rows: torch.Tensor, n: int) -> torch.Tensor:
-    """``on_rows`` as ``view_weights`` did it before: coalesced again."""
-    idx = w.indices()
-    return (
-        torch.sparse_coo_tensor(torch.stack([idx[0], rows[idx[1]]]), w.values(), (w.shape[0], n))
-        .coalesce()
-        .to_sparse_csr()
-    )
+def on_rows_coalescing(w: torch.Tensor, rows: torch.Tensor, n: int, min_weight: float = 0.0) -> torch.Tensor:
+    """``on_rows`` as ``view_weights`` did it before: the same entries, coalesced again."""
+    idx, vals = w.indices(), w.values()
+    big = vals >= min_weight
+    out = torch.sparse_coo_tensor(torch.stack([idx[0, big], rows[idx[1, big]]]), vals[big], (w.shape[0], n))
+    return out.coalesce().to_sparse_csr()
 
 
 def run(quick: bool = False) -> list[Result]:
