@@ -23,6 +23,8 @@ from typing import Any
 
 CUBLAS_WORKSPACE = ":4096:8"
 """cuBLAS needs a fixed workspace for deterministic GEMMs; it reads the variable when CUDA initialises."""
+INDUCTOR_DETERMINISTIC = "TORCHINDUCTOR_DETERMINISTIC"
+"""TorchInductor's ``config.deterministic`` is this variable == "1" when inductor loads."""
 
 
 def resolve(deterministic: bool | None) -> bool:
@@ -75,7 +77,20 @@ def _torch_start(torch, seed: int, num_cpus: float, deterministic: bool | None) 
         torch.backends.cudnn.benchmark = False
         torch.backends.cudnn.deterministic = True
     # warn_only: an op without a deterministic CUDA kernel warns (naming itself) instead of failing the stage
-    torch.use_deterministic_algorithms(on, warn_only=True)
+    _use_deterministic_algorithms(torch, on)
+
+
+def _use_deterministic_algorithms(torch, on: bool) -> None:
+    """``torch.use_deterministic_algorithms(on, warn_only=True)`` without the import of TorchInductor it makes to
+    set inductor's own copy of the flag (1.5-2 CPU-s of inductor, dynamo and sympy in every worker that runs a stage,
+    most of which never compile anything): the flag goes to torch's core as that function sets it; inductor's copy
+    is set where inductor is loaded, else left in the variable inductor reads when it loads."""
+    inductor = sys.modules.get("torch._inductor.config")
+    if inductor is not None:
+        inductor.deterministic = on
+    else:
+        os.environ[INDUCTOR_DETERMINISTIC] = "1" if on else "0"
+    torch._C._set_deterministic_algorithms(on, warn_only=True)
 
 
 class _TorchOnImport(importlib.abc.MetaPathFinder):

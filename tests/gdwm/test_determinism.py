@@ -98,3 +98,46 @@ def test_model_seeds_follow_the_trial_seed_unless_pinned():
     assert (cfg.model.llm.seed, cfg.model.selector.seed) == (5, 5)
     pinned = load_config(["seed=5", "model.llm.seed=1"])
     assert (pinned.model.llm.seed, pinned.model.selector.seed) == (1, 5)
+
+
+FLAGS = """
+import json, sys
+import torch
+mode = sys.argv[1]
+if mode.startswith("loaded-"):  # inductor in the process already (a stage that compiled, a dynamo import)
+    import torch._inductor.config
+on = mode.endswith("on")
+if mode.startswith("torch"):
+    torch.use_deterministic_algorithms(on, warn_only=True)
+else:
+    from gdwm.determinism import stage_start
+    stage_start(7, 1, on)
+loaded = "torch._inductor" in sys.modules
+import torch._inductor.config as inductor
+print(json.dumps([torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled(),
+                  inductor.deterministic, loaded]))
+"""
+
+
+def _flags(mode: str) -> list:
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "TORCHINDUCTOR_DETERMINISTIC"}
+    r = subprocess.run([sys.executable, "-c", FLAGS, mode], capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return json.loads(r.stdout)
+
+
+def test_stage_start_sets_torchs_deterministic_flags_as_torch_does_without_loading_inductor():
+    # torch.use_deterministic_algorithms imports TorchInductor (1.5-2 s of a worker's CPU) to set its copy of the
+    # flag; stage_start gives the same flags (torch's core, warn_only, inductor's copy once it loads) without it
+    for on in (True, False):
+        torch_flags, gdwm_flags = _flags(f"torch-{'on' if on else 'off'}"), _flags(f"gdwm-{'on' if on else 'off'}")
+        assert gdwm_flags[:3] == torch_flags[:3] and gdwm_flags[0] is gdwm_flags[2] is on
+        assert (torch_flags[3], gdwm_flags[3]) == (True, False)  # inductor loaded by torch's function, not by ours
+    assert _flags("loaded-gdwm-on") == _flags("loaded-torch-on") == [True, True, True, True]
+    off = _flags("loaded-gdwm-off")
+    assert off == _flags("loaded-torch-off") and (off[0], off[2], off[3]) == (False, False, True)
