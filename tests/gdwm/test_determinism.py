@@ -125,7 +125,9 @@ def _flags(mode: str) -> list:
     import subprocess
     import sys
 
-    env = {k: v for k, v in os.environ.items() if k != "TORCHINDUCTOR_DETERMINISTIC"}
+    from gdwm.determinism import INDUCTOR_DETERMINISTIC
+
+    env = {k: v for k, v in os.environ.items() if k != INDUCTOR_DETERMINISTIC}
     r = subprocess.run([sys.executable, "-c", FLAGS, mode], capture_output=True, text=True, timeout=120, env=env)
     assert r.returncode == 0, r.stderr[-2000:]
     return json.loads(r.stdout)
